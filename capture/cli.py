@@ -1,0 +1,36 @@
+"""The `mca` command line: a typer app assembled from the modules in `capture.commands`."""
+from __future__ import annotations
+
+import importlib
+import pkgutil
+
+import typer
+
+from capture import commands
+
+app = typer.Typer(
+    name="mca",
+    help="Accurate-depth 3D imaging from one multi-colour-filter-aperture photograph.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+
+def _register_commands() -> None:
+    for module_info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
+        module = importlib.import_module(f"{commands.__name__}.{module_info.name}")
+        register = getattr(module, "register", None)
+        if register is not None:
+            register(app)
+
+
+_register_commands()
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()

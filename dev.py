@@ -1,0 +1,76 @@
+#!/usr/bin/env python3
+"""Set up a fresh machine and run the project: `python3 dev.py demo` or `python3 dev.py test`.
+
+Needs only Python >= 3.11 with pip. Creates `.venv` when missing, installs the
+project with its test extras whenever pyproject.toml changed, and on Debian
+(as root) installs the two system tools the tests use as independent
+references: exiftool and gphoto2.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import venv
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent
+VENV = ROOT / ".venv"
+BIN = VENV / "bin"
+SYSTEM_TOOLS = {"exiftool": "libimage-exiftool-perl", "gphoto2": "gphoto2"}
+
+
+def _say(message: str) -> None:
+    print(f"[dev] {message}", flush=True)
+
+
+def ensure_venv() -> None:
+    python = BIN / "python"
+    if not python.exists():
+        _say(f"creating {VENV}")
+        venv.create(VENV, with_pip=True)
+    stamp = VENV / ".installed"
+    digest = hashlib.sha256((ROOT / "pyproject.toml").read_bytes()).hexdigest()
+    if stamp.exists() and stamp.read_text() == digest:
+        return
+    _say("installing the project and its test dependencies into .venv (about a minute)")
+    subprocess.run([str(python), "-m", "pip", "install", "-q", "--upgrade", "pip"], check=True)
+    subprocess.run([str(python), "-m", "pip", "install", "-q", "-e", f"{ROOT}[test]"], check=True)
+    stamp.write_text(digest)
+
+
+def ensure_system_tools() -> None:
+    missing = [pkg for tool, pkg in SYSTEM_TOOLS.items() if shutil.which(tool) is None]
+    if not missing:
+        return
+    if shutil.which("apt-get") is None or os.geteuid() != 0:
+        _say(f"not installing {', '.join(missing)} (needs root and apt-get); tests that use them will skip")
+        return
+    _say(f"installing {', '.join(missing)} with apt-get")
+    env = dict(os.environ, DEBIAN_FRONTEND="noninteractive")
+    quiet = {"stdout": subprocess.DEVNULL, "env": env}
+    subprocess.run(["apt-get", "update", "-qq"], check=False, **quiet)
+    result = subprocess.run(
+        ["apt-get", "install", "-y", "-qq", "--no-install-recommends", *missing], check=False, **quiet
+    )
+    if result.returncode != 0:
+        _say(f"apt-get could not install {', '.join(missing)}; tests that use them will skip")
+
+
+def main(argv: list[str]) -> int:
+    if len(argv) < 1 or argv[0] not in {"demo", "test"}:
+        print(__doc__)
+        return 2
+    os.chdir(ROOT)
+    ensure_venv()
+    env = dict(os.environ, RERUN_ANALYTICS="0")
+    if argv[0] == "demo":
+        return subprocess.call([str(BIN / "mca"), "demo", "--out", "demo-out", *argv[1:]], env=env)
+    ensure_system_tools()
+    return subprocess.call([str(BIN / "python"), "-m", "pytest", *argv[1:]], env=env)
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
