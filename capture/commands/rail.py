@@ -1,0 +1,77 @@
+"""`mca rail home|move MM|status`: drive the bench rail (a GRBL stage on a serial port, or `--rail sim`)."""
+from __future__ import annotations
+
+import typer
+
+SIM_SPEEDUP = 20.0  # `--rail sim` moves this many times faster than the real stage would
+
+_RAIL_OPTION = typer.Option(
+    ..., "--rail", envvar="MCA_RAIL",
+    help="Serial port of the GRBL controller (e.g. /dev/ttyUSB0), or 'sim' for the simulated controller.")
+
+
+def _open(rail_spec: str):  # -> devices.rail.GrblRail; imported lazily to keep `mca --help` fast
+    from devices.rail import open_rail
+
+    return open_rail(rail_spec, sim_speedup=SIM_SPEEDUP)
+
+
+def _show(status) -> str:
+    return (f"{status.state} at {status.position_mm:.3f} mm from the home switch "
+            f"(machine X {status.machine_x_mm:.3f} mm)")
+
+
+def _fail(error: Exception) -> None:
+    typer.echo(f"error: {error}", err=True)
+    raise typer.Exit(code=1)
+
+
+def register(app: typer.Typer) -> None:
+    rail_app = typer.Typer(help="Home, move and query the bench rail (GRBL over serial).", no_args_is_help=True)
+
+    @rail_app.command("home")
+    def home(rail: str = _RAIL_OPTION) -> None:
+        """Run the homing cycle ($H); the rail then stands at its home switch, unlocked."""
+        from devices.rail import RailError
+
+        try:
+            with _open(rail) as stage:
+                typer.echo(_show(stage.home()))
+        except RailError as error:
+            _fail(error)
+
+    @rail_app.command("move")
+    def move(
+        position_mm: float = typer.Argument(..., help="Target in mm from the home switch (0 .. travel)."),
+        rail: str = _RAIL_OPTION,
+        feed: float = typer.Option(600.0, "--feed", help="Feed rate in mm/min (capped by the controller's $110)."),
+        home_first: bool = typer.Option(False, "--home", help="Home first (a controller fresh from reset is locked)."),
+    ) -> None:
+        """Move to an absolute position, wait until idle, and print the position read back."""
+        from devices.rail import RailError
+
+        try:
+            with _open(rail) as stage:
+                if home_first:
+                    stage.home()
+                try:
+                    typer.echo(_show(stage.move_to(position_mm, feed_mm_per_min=feed)))
+                except KeyboardInterrupt:
+                    stage.halt()
+                    raise
+        except RailError as error:
+            _fail(error)
+
+    @rail_app.command("status")
+    def status(rail: str = _RAIL_OPTION) -> None:
+        """Print the controller state, the position and the travel."""
+        from devices.rail import RailError
+
+        try:
+            with _open(rail) as stage:
+                typer.echo(_show(stage.status()))
+                typer.echo(f"travel 0 .. {stage.travel_mm:.3f} mm; controller {stage.banner or 'GRBL'}")
+        except RailError as error:
+            _fail(error)
+
+    app.add_typer(rail_app, name="rail")
