@@ -1,0 +1,379 @@
+"""Tethered shooting: open a camera by name, capture, download safely into a folder, catalog, and reconnect.
+
+Each shot is downloaded to a temporary name, its size checked against the
+camera's ObjectInfo, fsynced and renamed; `catalog.sqlite` records it. File
+names from the camera are untrusted and sanitised. After a disconnect the
+session reconnects and fetches what the catalog says is missing.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+import time
+import unicodedata
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from capture.catalog import Catalog
+from devices.ptp.camera import MAX_OBJECT_BYTES, Camera, CapturedObject, DeviceBusyError, PtpError
+from devices.ptp.codec import ProtocolError
+from devices.ptp.codes import ObjectFormat
+from devices.ptp.transport import DeviceDisconnected, TransportError
+
+CameraFactory = Callable[[], Camera]
+MAX_FILENAME_CHARS = 100
+RETRIES = 6
+RECONNECT_ATTEMPTS = 5
+
+
+def default_sim_frame_source() -> Callable[[int], Any]:
+    """The frame source of `--camera sim`: what the simulated EOS 70D "photographs" (index -> (name, bytes)).
+
+    Hook for the lead: point this at the MCA scene simulator. For now each shot is a small
+    real CR2 (`capture.cr2.cr2_bytes`, deterministic noise mosaic, 480 x 720 px) that rawpy opens;
+    when the CR2 writer is missing, deterministic stand-in bytes.
+    """
+    try:
+        from capture.cr2 import cr2_bytes
+    except ImportError:
+        from devices.sim_eos70d.responder import default_frame_source
+
+        return default_frame_source
+
+    def frame(index: int) -> tuple[str, bytes]:
+        import numpy as np
+
+        mosaic = np.random.default_rng(index).integers(2100, 14000, (480, 720)).astype(np.uint16)
+        return f"IMG_{index:04d}.CR2", cr2_bytes(mosaic)
+
+    return frame
+
+
+# -- untrusted names --------------------------------------------------------
+_UNSAFE = re.compile(r"[^A-Za-z0-9._+\-]")
+
+
+def sanitize_filename(name: str, taken: set[str] | None = None) -> str:
+    """A safe local file name for a name a camera sent: no separators, no `..`, no control characters.
+
+    Collisions with `taken` (names already used, compared case-insensitively) get a `_N` suffix.
+    """
+    text = unicodedata.normalize("NFKC", name or "")
+    text = text.replace("\\", "/").split("/")[-1]
+    text = "".join(ch for ch in text if ch.isprintable())
+    text = _UNSAFE.sub("_", text)
+    text = re.sub(r"\.{2,}", ".", text).strip(". ")
+    if not text:
+        text = "shot"
+    stem, dot, ext = text.rpartition(".")
+    if not dot:
+        stem, ext = text, ""
+    ext = ext[:10]
+    stem = stem[: MAX_FILENAME_CHARS - len(ext) - 8] or "shot"
+    candidate = f"{stem}.{ext}" if ext else stem
+    lowered = {t.lower() for t in (taken or set())}
+    n = 1
+    while candidate.lower() in lowered:
+        candidate = f"{stem}_{n}.{ext}" if ext else f"{stem}_{n}"
+        n += 1
+    return candidate
+
+
+def _safe_target(out_dir: Path, name: str) -> Path:
+    target = (out_dir / name).resolve()
+    if target.parent != out_dir.resolve():
+        raise ValueError(f"refusing to write {name!r} outside {out_dir}")
+    return target
+
+
+# -- opening cameras --------------------------------------------------------
+@dataclass
+class SimRig:
+    """The simulated camera and the USB backend it is reached through (kept so a reconnect finds it again)."""
+
+    camera: Any
+    backend: Any
+
+
+def make_sim_rig(frame_source: Callable[[int], Any] | None = None, *, faults: Any = None,
+                 pace_bytes_per_s: float | None = None) -> SimRig:
+    from devices.sim_eos70d.responder import SimEos70D
+    from devices.sim_eos70d.usb_backend import SimUsbBackend
+
+    sim = SimEos70D(frame_source or default_sim_frame_source())
+    return SimRig(sim, SimUsbBackend(sim, faults=faults, pace_bytes_per_s=pace_bytes_per_s))
+
+
+def camera_factory(spec: str, *, rig: SimRig | None = None, timeout_s: float = 5.0) -> CameraFactory:
+    """A function that opens the camera named by `auto`, `sim`, `usb:BUS:ADDR` or `ptpip:HOST[:PORT]`."""
+    from devices.ptp.transport_usb import UsbTransport, find_cameras, open_usb
+
+    if spec == "sim":
+        rig = rig or make_sim_rig()
+
+        def open_sim() -> Camera:
+            if not rig.backend.connected:
+                rig.backend.replug()  # the simulated photographer plugs the cable back in
+            cams = find_cameras(rig.backend)
+            return Camera.open(UsbTransport(cams[0], timeout_s=timeout_s))
+
+        open_sim.rig = rig  # type: ignore[attr-defined]
+        return open_sim
+    if spec.startswith("ptpip:"):
+        from devices.ptp.transport_ptpip import PtpIpTransport
+
+        host, _, port = spec[len("ptpip:"):].partition(":")
+        return lambda: Camera.open(PtpIpTransport(host or "127.0.0.1", int(port or 15740), timeout_s=timeout_s))
+    if spec.startswith("usb:"):
+        return lambda: Camera.open(open_usb(spec, timeout_s=timeout_s))
+    if spec == "auto":
+        def open_auto() -> Camera:
+            cams = find_cameras()
+            if not cams:
+                raise TransportError("no PTP camera on USB: connect and switch on the EOS 70D, "
+                                     "or use `--camera sim` for the simulated one")
+            return Camera.open(UsbTransport(cams[0], timeout_s=timeout_s))
+        return open_auto
+    raise ValueError(f"unknown camera {spec!r}: use auto, sim, usb:BUS:ADDR or ptpip:HOST:PORT")
+
+
+# -- the session ------------------------------------------------------------
+@dataclass(frozen=True)
+class ShotResult:
+    shot_id: int
+    path: Path | None
+    status: str
+    message: str = ""
+
+
+class _HashingWriter:
+    def __init__(self, fh: Any) -> None:
+        self.fh, self.sha, self.size_bytes = fh, hashlib.sha256(), 0
+
+    def write(self, piece: Any) -> int:
+        self.fh.write(piece)
+        self.sha.update(piece)
+        self.size_bytes += len(piece)
+        return len(piece)
+
+
+class TetherSession:
+    """Drives one camera for a capture run; survives busy answers, stalls, broken containers and disconnects."""
+
+    def __init__(self, factory: CameraFactory, out_dir: Path, *, delete_after_verify: bool = False,
+                 process: bool = False, profile: str | None = None, record: Path | None = None,
+                 log: Callable[[str], None] = lambda msg: None, progress: Callable[[int, int], None] | None = None,
+                 capture_target: str | None = "card") -> None:
+        self.factory = factory
+        self.out_dir = Path(out_dir)
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.catalog = Catalog(self.out_dir / "catalog.sqlite")
+        self.delete_after_verify = delete_after_verify
+        self.process = process
+        self.profile = profile
+        self.record = record
+        self.log = log
+        self.progress = progress
+        self.capture_target = capture_target
+        self.camera: Camera | None = None
+        self.reconnects = 0
+        self._profile_obj: Any = None
+
+    # connection ------------------------------------------------------------
+    def connect(self) -> Camera:
+        last: Exception | None = None
+        for attempt in range(RECONNECT_ATTEMPTS):
+            try:
+                cam = self.factory()
+                if cam.is_eos and self.capture_target:
+                    cam.set_property("capturetarget", self.capture_target)
+                self.camera = cam
+                self.recover_missing()
+                return cam
+            except (TransportError, ProtocolError, PtpError) as exc:
+                last = exc
+                self._drop_camera()
+                time.sleep(min(2.0, 0.05 * 2 ** attempt))
+        raise TransportError(f"could not reconnect to the camera after {RECONNECT_ATTEMPTS} attempts: {last}; "
+                             "check the cable and that the camera is on")
+
+    def _drop_camera(self) -> None:
+        if self.camera is not None:
+            try:
+                self.camera.transport.close()
+            except Exception:  # noqa: BLE001 - already gone
+                pass
+        self.camera = None
+
+    def _cam(self) -> Camera:
+        return self.camera if self.camera is not None else self.connect()
+
+    def close(self) -> None:
+        if self.camera is not None:
+            try:
+                self.camera.close()
+            except Exception:  # noqa: BLE001 - closing a vanished camera
+                pass
+            self.camera = None
+        self.catalog.close()
+
+    def _retrying(self, what: str, fn: Callable[[Camera], Any]) -> Any:
+        """Run `fn(camera)`, retrying after busy answers, protocol faults, timeouts and reconnecting after disconnects."""
+        last: Exception | None = None
+        for attempt in range(RETRIES):
+            cam = self._cam()
+            try:
+                return fn(cam)
+            except DeviceBusyError as exc:
+                last = exc
+                self.log(f"{what}: camera busy, retrying")
+                time.sleep(min(1.0, 0.02 * 2 ** attempt))
+            except DeviceDisconnected as exc:
+                last = exc
+                self.log(f"{what}: {exc}; reconnecting")
+                self._drop_camera()
+                self.reconnects += 1
+            except (ProtocolError, TransportError) as exc:
+                last = exc
+                self.log(f"{what}: {exc}; resetting the link")
+                if cam.transport.__class__.__name__ == "PtpIpTransport":
+                    self._drop_camera()  # a TCP stream cannot be resynchronised
+                    self.reconnects += 1
+        raise TransportError(f"{what} failed after {RETRIES} attempts: {last}")
+
+    # shots -----------------------------------------------------------------
+    def capture(self, count: int = 1, interval_s: float = 0.0) -> list[ShotResult]:
+        results = []
+        for i in range(count):
+            started = time.monotonic()
+            obj = self._retrying("capture", lambda cam: cam.capture())
+            results.append(self._store_new(obj))
+            if i + 1 < count and interval_s > 0:
+                time.sleep(max(0.0, interval_s - (time.monotonic() - started)))
+        return results
+
+    def tethered(self, stop: Callable[[], bool], *, max_shots: int | None = None) -> list[ShotResult]:
+        """Download each shot taken with the camera's own shutter button until `stop()` (or `max_shots`)."""
+        results: list[ShotResult] = []
+        while not stop() and (max_shots is None or len(results) < max_shots):
+            obj = self._retrying("waiting for a shot", lambda cam: cam.wait_for_object(0.5, stop=stop))
+            if obj is not None:
+                results.append(self._store_new(obj))
+        return results
+
+    def _store_new(self, obj: CapturedObject) -> ShotResult:
+        serial = self._cam().serial_number
+        shot_id = self.catalog.add_captured(serial, obj.filename, obj.handle, obj.size_bytes)
+        return self._fetch(shot_id, obj)
+
+    def _fetch(self, shot_id: int, obj: CapturedObject) -> ShotResult:
+        try:
+            path = self._retrying(f"download of {obj.filename}", lambda cam: self._download(cam, shot_id, obj))
+        except (TransportError, ValueError, OSError) as exc:
+            if isinstance(exc, TransportError) and obj.in_ram is False:
+                self.catalog.note(shot_id, f"download pending: {exc}")
+                return ShotResult(shot_id, None, "captured", str(exc))
+            self.catalog.mark_failed(shot_id, str(exc))
+            return ShotResult(shot_id, None, "failed", str(exc))
+        if self.process and self.catalog.get(shot_id).status == "downloaded":
+            return self._process(shot_id, path)
+        return ShotResult(shot_id, path, "downloaded")
+
+    def _download(self, cam: Camera, shot_id: int, obj: CapturedObject) -> Path:
+        row = self.catalog.get(shot_id)
+        if row.status != "captured" and row.file_name:  # a reconnect already fetched it
+            return self.out_dir / row.file_name
+        handle = obj.handle
+        if obj.in_ram:
+            expected = obj.size_bytes
+        else:
+            handle = self._find_on_card(cam, obj)
+            expected = cam.object_info(handle).compressed_size_bytes
+        if not 0 < expected <= MAX_OBJECT_BYTES:
+            raise ValueError(f"{cam.name} reports {expected} bytes for {obj.filename!r}; refusing (limit {MAX_OBJECT_BYTES})")
+        name = sanitize_filename(obj.filename, self.catalog.file_names() | set(os.listdir(self.out_dir)))
+        final = _safe_target(self.out_dir, name)
+        tmp = _safe_target(self.out_dir, f".{name}.part")
+        with open(tmp, "wb") as fh:
+            writer = _HashingWriter(fh)
+            cam.download(handle, expected, writer, progress=self.progress)  # type: ignore[arg-type]
+            fh.flush()
+            os.fsync(fh.fileno())
+        if writer.size_bytes != expected or tmp.stat().st_size != expected:
+            tmp.unlink(missing_ok=True)
+            raise ProtocolError(f"{cam.name} sent {writer.size_bytes} bytes for {obj.filename!r}, ObjectInfo says {expected}")
+        os.replace(tmp, final)
+        dir_fd = os.open(self.out_dir, os.O_RDONLY)
+        try:
+            os.fsync(dir_fd)
+        finally:
+            os.close(dir_fd)
+        digest = writer.sha.hexdigest()
+        self.catalog.mark_downloaded(shot_id, name, expected, digest)
+        if obj.in_ram:
+            cam.transfer_complete(handle)
+        elif self.delete_after_verify:
+            if _sha256_file(final) == digest:
+                cam.delete(handle)
+        return final
+
+    def _find_on_card(self, cam: Camera, obj: CapturedObject) -> int:
+        """The handle of the shot now (handles may change across reconnects): by handle, else by file name."""
+        try:
+            info = cam.object_info(obj.handle)
+            if info.filename == obj.filename:
+                return obj.handle
+        except PtpError:
+            pass
+        for handle, info in cam.files():
+            if info.filename == obj.filename and info.object_format != ObjectFormat.ASSOCIATION:
+                return handle
+        raise ValueError(f"{obj.filename!r} is no longer on the camera's card")
+
+    def recover_missing(self) -> list[ShotResult]:
+        """After (re)connecting: download every shot the catalog says was captured but never reached the disk."""
+        cam = self.camera
+        if cam is None:
+            return []
+        results = []
+        for row in self.catalog.missing(cam.serial_number):
+            obj = CapturedObject(row.camera_handle or 0, row.camera_filename, row.size_bytes or 0, 0, 0, False)
+            self.log(f"fetching {row.camera_filename} (shot {row.id}) that a disconnect left on the card")
+            results.append(self._fetch(row.id, obj))
+        return results
+
+    def _process(self, shot_id: int, path: Path) -> ShotResult:
+        try:
+            from capture import pipeline_app
+            from capture.profiles import DEFAULT_PROFILE, load_profile
+        except ImportError as exc:
+            msg = f"not processed: the processing pipeline is not available ({exc})"
+            self.catalog.note(shot_id, msg)
+            return ShotResult(shot_id, path, "downloaded", msg)
+        try:
+            if self._profile_obj is None:
+                self._profile_obj = load_profile(self.profile or DEFAULT_PROFILE)
+            outcome = pipeline_app.process_file(path, self.out_dir, self._profile_obj, record_path=self.record)
+        except Exception as exc:  # noqa: BLE001 - a processing failure must not lose the shot
+            outcome = None
+            reason = f"processing failed: {exc}"
+        else:
+            reason = getattr(outcome, "reason", None) or ""
+        if outcome is None or getattr(outcome, "status", "done") == "failed":
+            msg = reason if reason.startswith("processing failed") else f"processing failed: {reason}"
+            self.catalog.mark_failed(shot_id, msg)
+            return ShotResult(shot_id, path, "failed", msg)
+        result_path = str(getattr(outcome, "output_dir", outcome))
+        self.catalog.mark_processed(shot_id, result_path)
+        return ShotResult(shot_id, path, "processed", result_path)
+
+
+def _sha256_file(path: Path) -> str:
+    sha = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            sha.update(block)
+    return sha.hexdigest()

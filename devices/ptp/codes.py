@@ -1,0 +1,165 @@
+"""PTP and Canon EOS numeric codes: operations, responses, events, object formats and device properties."""
+from __future__ import annotations
+
+from enum import IntEnum
+
+
+class ContainerType(IntEnum):
+    COMMAND = 1
+    DATA = 2
+    RESPONSE = 3
+    EVENT = 4
+
+
+class Op(IntEnum):
+    """Operation codes (standard 0x1xxx, Canon EOS 0x91xx)."""
+
+    GET_DEVICE_INFO = 0x1001
+    OPEN_SESSION = 0x1002
+    CLOSE_SESSION = 0x1003
+    GET_STORAGE_IDS = 0x1004
+    GET_STORAGE_INFO = 0x1005
+    GET_NUM_OBJECTS = 0x1006
+    GET_OBJECT_HANDLES = 0x1007
+    GET_OBJECT_INFO = 0x1008
+    GET_OBJECT = 0x1009
+    GET_THUMB = 0x100A
+    DELETE_OBJECT = 0x100B
+    SEND_OBJECT_INFO = 0x100C
+    SEND_OBJECT = 0x100D
+    INITIATE_CAPTURE = 0x100E
+    GET_DEVICE_PROP_DESC = 0x1014
+    GET_DEVICE_PROP_VALUE = 0x1015
+    SET_DEVICE_PROP_VALUE = 0x1016
+    GET_PARTIAL_OBJECT = 0x101B
+    EOS_GET_STORAGE_IDS = 0x9101
+    EOS_GET_STORAGE_INFO = 0x9102
+    EOS_GET_OBJECT = 0x9104
+    EOS_GET_PARTIAL_OBJECT = 0x9107
+    EOS_GET_DEVICE_INFO_EX = 0x9108
+    EOS_GET_OBJECT_INFO_EX = 0x9109
+    EOS_REMOTE_RELEASE = 0x910F
+    EOS_SET_DEVICE_PROP_VALUE_EX = 0x9110
+    EOS_SET_REMOTE_MODE = 0x9114
+    EOS_SET_EVENT_MODE = 0x9115
+    EOS_GET_EVENT = 0x9116
+    EOS_TRANSFER_COMPLETE = 0x9117
+    EOS_PC_HDD_CAPACITY = 0x911A
+    EOS_SET_UI_LOCK = 0x911B
+    EOS_RESET_UI_LOCK = 0x911C
+    EOS_KEEP_DEVICE_ON = 0x911D
+    EOS_REQUEST_DEVICE_PROP_VALUE = 0x9127
+    EOS_REMOTE_RELEASE_ON = 0x9128
+    EOS_REMOTE_RELEASE_OFF = 0x9129
+    EOS_SET_REQUEST_OLC_INFO_GROUP = 0x913D
+    EOS_GET_VIEWFINDER_DATA = 0x9153
+    EOS_AF_CANCEL = 0x9160
+
+
+class Resp(IntEnum):
+    """Response codes."""
+
+    OK = 0x2001
+    GENERAL_ERROR = 0x2002
+    SESSION_NOT_OPEN = 0x2003
+    INVALID_TRANSACTION_ID = 0x2004
+    OPERATION_NOT_SUPPORTED = 0x2005
+    PARAMETER_NOT_SUPPORTED = 0x2006
+    INCOMPLETE_TRANSFER = 0x2007
+    INVALID_STORAGE_ID = 0x2008
+    INVALID_OBJECT_HANDLE = 0x2009
+    DEVICE_PROP_NOT_SUPPORTED = 0x200A
+    STORE_FULL = 0x200C
+    STORE_NOT_AVAILABLE = 0x2013
+    DEVICE_BUSY = 0x2019
+    INVALID_DEVICE_PROP_VALUE = 0x201C
+    INVALID_PARAMETER = 0x201D
+    SESSION_ALREADY_OPEN = 0x201E
+    TRANSACTION_CANCELLED = 0x201F
+    CANON_UNKNOWN_COMMAND = 0xA001
+    CANON_OPERATION_REFUSED = 0xA005
+    CANON_OBJECT_NOT_READY = 0xA102
+
+
+class Event(IntEnum):
+    """Standard PTP event codes (interrupt endpoint / PTP/IP event channel)."""
+
+    OBJECT_ADDED = 0x4002
+    OBJECT_REMOVED = 0x4003
+    STORE_ADDED = 0x4004
+    STORE_REMOVED = 0x4005
+    DEVICE_PROP_CHANGED = 0x4006
+    OBJECT_INFO_CHANGED = 0x4007
+    REQUEST_OBJECT_TRANSFER = 0x4009
+    CAPTURE_COMPLETE = 0x400D
+
+
+class EosEventCode(IntEnum):
+    """Record codes inside the data of a Canon EOS GetEvent (0x9116)."""
+
+    TERMINATOR = 0x0000
+    OBJECT_ADDED_EX = 0xC181
+    OBJECT_REMOVED = 0xC182
+    REQUEST_OBJECT_TRANSFER = 0xC186
+    OBJECT_INFO_CHANGED_EX = 0xC187
+    PROP_VALUE_CHANGED = 0xC189
+    AVAIL_LIST_CHANGED = 0xC18A
+    CAMERA_STATUS_CHANGED = 0xC18B
+
+
+class ObjectFormat(IntEnum):
+    UNDEFINED = 0x3000
+    ASSOCIATION = 0x3001
+    JPEG = 0x3801
+    CANON_CR2 = 0xB103
+
+
+class EosProp(IntEnum):
+    """Canon EOS device property codes."""
+
+    APERTURE = 0xD101
+    SHUTTER_SPEED = 0xD102
+    ISO_SPEED = 0xD103
+    FOCUS_MODE = 0xD108
+    AVAILABLE_SHOTS = 0xD11B
+    CAPTURE_DESTINATION = 0xD11C
+    IMAGE_FORMAT = 0xD120
+
+
+class StdProp(IntEnum):
+    """Standard PTP device property codes used by generic cameras."""
+
+    BATTERY_LEVEL = 0x5001
+    IMAGE_SIZE = 0x5003
+    COMPRESSION_SETTING = 0x5004
+    F_NUMBER = 0x5007
+    EXPOSURE_TIME = 0x500D
+    EXPOSURE_INDEX = 0x500F
+
+
+class DataType(IntEnum):
+    INT8 = 0x0001
+    UINT8 = 0x0002
+    INT16 = 0x0003
+    UINT16 = 0x0004
+    INT32 = 0x0005
+    UINT32 = 0x0006
+    INT64 = 0x0007
+    UINT64 = 0x0008
+    STR = 0xFFFF
+
+
+CANON_VENDOR_ID = 0x04A9
+EOS_70D_PRODUCT_ID = 0x3253
+CANON_VENDOR_EXTENSION_ID = 0x0000000B
+CAPTURE_DESTINATION_CARD = 2
+CAPTURE_DESTINATION_RAM = 4
+ALL_STORAGES = 0xFFFFFFFF
+
+
+def name_of(enum_type: type[IntEnum], code: int) -> str:
+    """`Resp.DEVICE_BUSY` style name for a code, or its hex when unknown."""
+    try:
+        return enum_type(code).name
+    except ValueError:
+        return f"0x{code:04X}"

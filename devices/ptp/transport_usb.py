@@ -1,0 +1,360 @@
+"""PTP over USB (Still Image Capture class) on pyusb: device discovery, endpoints, class requests, bulk I/O.
+
+A thin shell around `devices.ptp.codec`: it moves bytes and keeps the USB
+rules (zero-length packets after full packets, stray ZLPs, bytes beyond the
+current container). The simulated EOS 70D is reached through this very code
+with `find_cameras(backend=SimUsbBackend(...))`.
+"""
+from __future__ import annotations
+
+import array
+import errno
+import struct
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from devices.ptp.codec import (
+    HEADER_BYTES,
+    Container,
+    ProtocolError,
+    pack_command,
+    pack_data,
+    parse_container,
+    parse_header,
+)
+from devices.ptp.codes import CANON_VENDOR_ID, ContainerType, Resp
+from devices.ptp.transport import DataSink, DeviceDisconnected, Response, Transport, TransportError, TransportTimeout
+
+PTP_CLASS = (6, 1, 1)
+REQ_CANCEL = 0x64
+REQ_GET_EXTENDED_EVENT_DATA = 0x65
+REQ_DEVICE_RESET = 0x66
+REQ_GET_DEVICE_STATUS = 0x67
+#: Size of the reusable bulk-in buffer: large reads go straight into it.
+READ_CHUNK_BYTES = 1024 * 1024
+DEFAULT_TIMEOUT_S = 5.0
+MAX_STRAY_ZLPS = 8
+
+
+@dataclass(frozen=True)
+class UsbCameraInfo:
+    """A PTP interface found on the bus."""
+
+    bus: int
+    address: int
+    vendor_id: int
+    product_id: int
+    configuration_value: int
+    interface_number: int
+    manufacturer: str
+    product: str
+    serial_number: str
+    device: Any  # the pyusb Device
+
+    @property
+    def port(self) -> str:
+        return f"usb:{self.bus:03d}:{self.address:03d}"
+
+    @property
+    def is_canon(self) -> bool:
+        return self.vendor_id == CANON_VENDOR_ID
+
+
+def default_backend() -> Any:
+    """libusb-1.0 through `libusb-package` when installed (a bench without system packages), else pyusb's default."""
+    try:
+        import libusb_package
+
+        return libusb_package.get_libusb1_backend()
+    except Exception:  # noqa: BLE001 - fall back to whatever pyusb finds
+        return None
+
+
+def _string(dev: Any, index: int) -> str:
+    if not index:
+        return ""
+    try:
+        import usb.util
+
+        return usb.util.get_string(dev, index) or ""
+    except Exception:  # noqa: BLE001 - permissions or a camera that refuses string requests
+        return ""
+
+
+def find_cameras(backend: Any = None) -> list[UsbCameraInfo]:
+    """Every Still Image Capture interface (class 6/1/1) on the bus, Canon bodies first."""
+    import usb.core
+
+    if backend is None:
+        backend = default_backend()
+    found: list[UsbCameraInfo] = []
+    try:
+        devices = list(usb.core.find(find_all=True, backend=backend))
+    except usb.core.NoBackendError as exc:
+        raise TransportError("no libusb backend: install libusb-1.0 or `pip install libusb-package`") from exc
+    for dev in devices:
+        try:
+            configs = list(dev)
+        except Exception:  # noqa: BLE001 - a device whose descriptors cannot be read is not ours
+            continue
+        for cfg in configs:
+            for intf in cfg:
+                if (intf.bInterfaceClass, intf.bInterfaceSubClass, intf.bInterfaceProtocol) != PTP_CLASS:
+                    continue
+                found.append(UsbCameraInfo(
+                    bus=int(dev.bus or 0), address=int(dev.address or 0), vendor_id=dev.idVendor,
+                    product_id=dev.idProduct, configuration_value=cfg.bConfigurationValue,
+                    interface_number=intf.bInterfaceNumber, manufacturer=_string(dev, dev.iManufacturer),
+                    product=_string(dev, dev.iProduct), serial_number=_string(dev, dev.iSerialNumber), device=dev,
+                ))
+                break
+    found.sort(key=lambda c: (not c.is_canon, c.bus, c.address))
+    return found
+
+
+def _is_gone(exc: Exception) -> bool:
+    code = getattr(exc, "backend_error_code", None)
+    return getattr(exc, "errno", None) in (errno.ENODEV, errno.EIO, errno.ESHUTDOWN) or code in (-4, -1)
+
+
+class UsbTransport(Transport):
+    """Bulk-out commands and data, bulk-in data and responses, interrupt-in events."""
+
+    def __init__(self, info: UsbCameraInfo, *, timeout_s: float = DEFAULT_TIMEOUT_S) -> None:
+        import usb.core
+        import usb.util
+
+        self._usb_core = usb.core
+        self.info = info
+        self.dev = info.device
+        self.timeout_s = timeout_s
+        self.name = f"{info.port} {info.product or 'camera'}".strip()
+        self._closed = False
+        self._rx = array.array("B", bytes(READ_CHUNK_BYTES))
+        self._rx_view = memoryview(self._rx)
+        self._pending = b""  # bytes read beyond the container in hand
+        try:
+            try:
+                if self.dev.is_kernel_driver_active(info.interface_number):
+                    self.dev.detach_kernel_driver(info.interface_number)
+            except (NotImplementedError, usb.core.USBError):
+                pass
+            try:
+                active = self.dev.get_active_configuration()
+            except usb.core.USBError:
+                active = None
+            if active is None or active.bConfigurationValue != info.configuration_value:
+                self.dev.set_configuration(info.configuration_value)
+            cfg = self.dev.get_active_configuration()
+            intf = usb.util.find_descriptor(cfg, bInterfaceNumber=info.interface_number)
+            usb.util.claim_interface(self.dev, info.interface_number)
+        except usb.core.USBError as exc:
+            hint = ("another program holds the camera (stop gvfs-gphoto2-volume-monitor)" if exc.errno == errno.EBUSY
+                    else "check the udev rule for PTP cameras (see docs/tethering.md)" if exc.errno == errno.EACCES
+                    else "unplug and replug the camera")
+            raise TransportError(f"could not claim {self.name}: {exc}; {hint}") from exc
+        self.interface_number = info.interface_number
+        self.ep_in = self.ep_out = self.ep_int = None
+        for ep in intf:
+            kind = usb.util.endpoint_type(ep.bmAttributes)
+            is_in = usb.util.endpoint_direction(ep.bEndpointAddress) == usb.util.ENDPOINT_IN
+            if kind == usb.util.ENDPOINT_TYPE_BULK and is_in:
+                self.ep_in = ep
+            elif kind == usb.util.ENDPOINT_TYPE_BULK:
+                self.ep_out = ep
+            elif kind == usb.util.ENDPOINT_TYPE_INTR and is_in:
+                self.ep_int = ep
+        if self.ep_in is None or self.ep_out is None:
+            raise TransportError(f"{self.name} has no bulk endpoint pair on interface {info.interface_number}")
+        self.max_packet_bytes = int(self.ep_out.wMaxPacketSize) or 512
+
+    # -- raw I/O ---------------------------------------------------------
+    def _ms(self, timeout_s: float | None) -> int:
+        return max(1, int(1000 * (self.timeout_s if timeout_s is None else timeout_s)))
+
+    def _wrap(self, exc: Exception, what: str) -> TransportError:
+        if isinstance(exc, self._usb_core.USBTimeoutError):
+            return TransportTimeout(f"{self.name} did not answer {what} in time; is it asleep or busy?")
+        if _is_gone(exc):
+            return DeviceDisconnected(f"{self.name} disconnected during {what}; reconnect the cable and retry")
+        return TransportError(f"USB error on {self.name} during {what}: {exc}")
+
+    def _write(self, data: bytes, timeout_s: float | None) -> None:
+        try:
+            sent = self.ep_out.write(data, self._ms(timeout_s))
+            if sent != len(data):
+                raise TransportError(f"{self.name} accepted {sent} of {len(data)} bytes")
+            if len(data) % self.max_packet_bytes == 0:
+                self.ep_out.write(b"", self._ms(timeout_s))  # a zero-length packet ends the transfer
+        except self._usb_core.USBError as exc:
+            raise self._wrap(exc, "a write") from exc
+
+    def _read_chunk(self, timeout_s: float | None) -> memoryview:
+        """The next non-empty piece of the bulk-in stream (leftovers first)."""
+        if self._pending:
+            chunk, self._pending = memoryview(self._pending), b""
+            return chunk
+        deadline = time.monotonic() + (self.timeout_s if timeout_s is None else timeout_s)
+        zlps = 0
+        while True:
+            try:
+                n = self.dev.read(self.ep_in.bEndpointAddress, self._rx, self._ms(max(0.001, deadline - time.monotonic())))
+            except self._usb_core.USBError as exc:
+                raise self._wrap(exc, "a read") from exc
+            if n:
+                return self._rx_view[:n]
+            zlps += 1  # a stray zero-length packet
+            if zlps > MAX_STRAY_ZLPS or time.monotonic() > deadline:
+                raise TransportTimeout(f"{self.name} sent only zero-length packets")
+
+    def _read_exact(self, n: int, timeout_s: float | None) -> bytes:
+        out = bytearray()
+        while len(out) < n:
+            chunk = self._read_chunk(timeout_s)
+            take = n - len(out)
+            out += chunk[:take]
+            if len(chunk) > take:
+                self._pending = bytes(chunk[take:])
+        return bytes(out)
+
+    def _read_container_header(self, timeout_s: float | None):
+        head = self._read_exact(HEADER_BYTES, timeout_s)
+        return parse_header(head), head
+
+    # -- transactions ----------------------------------------------------
+    def transaction(self, code, transaction_id, params=(), *, data_out=None, sink=None,
+                    max_data_bytes=64 * 1024 * 1024, timeout_s=None) -> Response:
+        if self._closed:
+            raise TransportError(f"{self.name} is closed")
+        self._write(pack_command(code, transaction_id, params), timeout_s)
+        if data_out is not None:
+            self._write(pack_data(code, transaction_id, data_out), timeout_s)
+        data: bytearray | None = None
+        data_bytes = 0
+        while True:
+            header, head = self._read_container_header(timeout_s)
+            if header.transaction_id != transaction_id:
+                raise ProtocolError(f"{self.name} answered transaction {header.transaction_id}, expected {transaction_id}")
+            if header.type == ContainerType.DATA:
+                if data_bytes or data is not None:
+                    raise ProtocolError(f"{self.name} sent two data phases for one transaction")
+                if header.code != code:
+                    raise ProtocolError(f"{self.name} data phase code 0x{header.code:04X} for operation 0x{code:04X}")
+                remaining = header.payload_bytes
+                if remaining > max_data_bytes:
+                    raise ProtocolError(f"{self.name} announced {remaining} data bytes, more than the {max_data_bytes} expected")
+                if sink is None:
+                    data = bytearray(remaining)
+                while remaining:
+                    chunk = self._read_chunk(timeout_s)
+                    take = min(remaining, len(chunk))
+                    piece = chunk[:take]
+                    if sink is None:
+                        data[data_bytes:data_bytes + take] = piece  # type: ignore[index]
+                    else:
+                        sink(piece)
+                    data_bytes += take
+                    remaining -= take
+                    if len(chunk) > take:
+                        self._pending = bytes(chunk[take:])
+                continue
+            if header.type != ContainerType.RESPONSE:
+                raise ProtocolError(f"{self.name} sent a {ContainerType(header.type).name} container where a response was due")
+            rest = self._read_exact(header.payload_bytes, timeout_s)
+            resp = parse_container(head + rest)
+            return Response(resp.code, resp.params, bytes(data) if data is not None else None, data_bytes)
+
+    def read_event(self, timeout_s: float) -> Container | None:
+        if self.ep_int is None:
+            time.sleep(timeout_s)
+            return None
+        try:
+            raw = self.ep_int.read(64, self._ms(timeout_s))
+        except self._usb_core.USBTimeoutError:
+            return None
+        except self._usb_core.USBError as exc:
+            raise self._wrap(exc, "an event read") from exc
+        if not raw:
+            return None
+        event = parse_container(bytes(raw))
+        if event.type != ContainerType.EVENT:
+            raise ProtocolError(f"{self.name} sent a non-event container on the interrupt endpoint")
+        return event
+
+    # -- class requests --------------------------------------------------
+    def cancel(self, transaction_id: int) -> None:
+        self._ctrl(0x21, REQ_CANCEL, struct.pack("<HI", 0x4001, transaction_id))
+
+    def device_reset(self) -> None:
+        self._ctrl(0x21, REQ_DEVICE_RESET, None)
+
+    def device_status(self) -> int:
+        """The response code of Get Device Status (OK, DeviceBusy, ...)."""
+        raw = bytes(self._ctrl(0xA1, REQ_GET_DEVICE_STATUS, 20))
+        if len(raw) < 4:
+            raise ProtocolError(f"{self.name} sent a {len(raw)}-byte device status")
+        length, code = struct.unpack_from("<HH", raw)
+        if length < 4 or length > len(raw):
+            raise ProtocolError(f"{self.name} device status claims {length} bytes")
+        return code
+
+    def _ctrl(self, request_type: int, request: int, data: Any) -> Any:
+        try:
+            return self.dev.ctrl_transfer(request_type, request, 0, self.interface_number, data, self._ms(None))
+        except self._usb_core.USBError as exc:
+            raise self._wrap(exc, f"class request 0x{request:02X}") from exc
+
+    def recover(self) -> None:
+        """After a timeout or a broken container: drop what is buffered, clear stalls, wait until idle."""
+        self._pending = b""
+        for ep in (self.ep_in, self.ep_out):
+            try:
+                self.dev.clear_halt(ep.bEndpointAddress)
+            except Exception:  # noqa: BLE001 - best effort
+                pass
+        deadline = time.monotonic() + 2.0
+        while time.monotonic() < deadline:
+            try:
+                if self.device_status() == Resp.OK:
+                    break
+            except TransportError:
+                break
+            time.sleep(0.02)
+        while True:  # drain anything still queued
+            try:
+                n = self.dev.read(self.ep_in.bEndpointAddress, self._rx, 20)
+            except Exception:  # noqa: BLE001 - a timeout means drained
+                break
+            if not n:
+                break
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            import usb.util
+
+            usb.util.release_interface(self.dev, self.interface_number)
+            usb.util.dispose_resources(self.dev)
+        except Exception:  # noqa: BLE001 - closing a vanished device
+            pass
+
+
+def open_usb(port: str | None = None, backend: Any = None, *, timeout_s: float = DEFAULT_TIMEOUT_S) -> UsbTransport:
+    """Open the first camera, or the one at `usb:BUS:ADDR`."""
+    cameras = find_cameras(backend)
+    if port:
+        cameras = [c for c in cameras if c.port == _normal_port(port)]
+    if not cameras:
+        where = f" at {port}" if port else ""
+        raise TransportError(f"no PTP camera found{where}: is it switched on, connected, and not held by gvfs?")
+    return UsbTransport(cameras[0], timeout_s=timeout_s)
+
+
+def _normal_port(port: str) -> str:
+    parts = port.split(":")
+    if len(parts) != 3 or parts[0] != "usb":
+        raise ValueError(f"USB port must look like usb:BUS:ADDR, got {port!r}")
+    return f"usb:{int(parts[1]):03d}:{int(parts[2]):03d}"

@@ -1,0 +1,353 @@
+"""A pure-Python pyusb backend that is a simulated EOS 70D: `usb.core.find(backend=SimUsbBackend())` finds it.
+
+It implements the Still Image Capture class on the device side: it parses the
+bulk-out stream into containers, runs them through `SimEos70D.handle`, and
+serves the data and response containers as bulk-in transfers (ending each
+with a zero-length packet when it fills whole packets). Optional pacing
+emulates a USB 2.0 link; `FaultPlan` injects failures.
+"""
+from __future__ import annotations
+
+import errno
+import struct
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import usb.backend
+import usb.core
+
+from devices.ptp.codec import HEADER_BYTES, ProtocolError, pack_data_header, pack_response, parse_container, parse_header
+from devices.ptp.codes import CANON_VENDOR_ID, EOS_70D_PRODUCT_ID, ContainerType, Resp
+from devices.sim_eos70d.faults import DOWNLOAD_OPS, FaultPlan, corrupt_container
+from devices.sim_eos70d.responder import SimEos70D
+
+MAX_PACKET_BYTES = 512
+EP_BULK_IN, EP_BULK_OUT, EP_INTR_IN = 0x81, 0x02, 0x83
+#: Practical PTP throughput of a USB 2.0 high-speed link (about 2/3 of 480 Mbit/s).
+USB2_BYTES_PER_S = 40e6
+
+
+class _Desc:
+    def __init__(self, **fields: Any) -> None:
+        self.extra_descriptors: list[int] = []
+        self.__dict__.update(fields)
+
+
+@dataclass
+class _Transfer:
+    segments: list[memoryview]
+    length: int
+    offset: int = 0
+    zlp: bool = False  # a zero-length packet marker
+
+
+@dataclass
+class _DeviceId:
+    bus: int
+    address: int
+
+
+@dataclass
+class _Handle:
+    device: _DeviceId
+    claimed: set[int] = field(default_factory=set)
+
+
+class SimUsbBackend(usb.backend.IBackend):
+    """The simulated camera on a simulated bus."""
+
+    def __init__(self, camera: SimEos70D | None = None, *, faults: FaultPlan | None = None,
+                 pace_bytes_per_s: float | None = None, bus: int = 1, address: int = 4) -> None:
+        super().__init__()
+        self.camera = camera or SimEos70D()
+        self.faults = faults or FaultPlan()
+        self.pace_bytes_per_s = pace_bytes_per_s
+        self.device_id: _DeviceId | None = _DeviceId(bus, address)
+        self.configuration = 0
+        self._out = bytearray()
+        self._pending_cmd = None
+        self._in: deque[_Transfer] = deque()
+        self._lock = threading.RLock()
+        self._stalled = False
+        self._pace_free_at = 0.0
+        self.in_bytes_total = 0
+        self._disconnect_armed_at: int | None = None
+        self._strings = {1: "Canon Inc.", 2: self.camera.device_info().model, 3: self.camera.serial_number}
+
+    # -- hot-plug --------------------------------------------------------
+    @property
+    def connected(self) -> bool:
+        return self.device_id is not None
+
+    def unplug(self) -> None:
+        with self._lock:
+            if self.device_id is not None:
+                self._last_id = self.device_id
+            self.device_id = None
+            self._in.clear()
+            self._out.clear()
+            self._pending_cmd = None
+            self.camera.disconnect()
+
+    def replug(self) -> None:
+        """The camera comes back at a new address, as after a real re-enumeration."""
+        with self._lock:
+            last = getattr(self, "_last_id", None) or _DeviceId(1, 3)
+            if self.device_id is None:
+                self.device_id = _DeviceId(last.bus, last.address + 1)
+            self.configuration = 0
+            self._stalled = False
+
+    def _gone(self, dev: Any = None) -> None:
+        if self.device_id is None or (dev is not None and getattr(dev, "device", dev) != self.device_id):
+            raise usb.core.USBError("No such device (it may have been disconnected)", -4, errno.ENODEV)
+
+    # -- descriptors -----------------------------------------------------
+    def enumerate_devices(self):
+        return [self.device_id] if self.device_id is not None else []
+
+    def get_parent(self, dev):
+        return None
+
+    def get_device_descriptor(self, dev):
+        return _Desc(bLength=18, bDescriptorType=1, bcdUSB=0x0200, bDeviceClass=0, bDeviceSubClass=0,
+                     bDeviceProtocol=0, bMaxPacketSize0=64, idVendor=CANON_VENDOR_ID, idProduct=EOS_70D_PRODUCT_ID,
+                     bcdDevice=0x0002, iManufacturer=1, iProduct=2, iSerialNumber=3, bNumConfigurations=1,
+                     address=dev.address, bus=dev.bus, port_number=1, port_numbers=(1,), speed=3)
+
+    def get_configuration_descriptor(self, dev, config):
+        if config != 0:
+            raise IndexError("the EOS 70D has one configuration")
+        return _Desc(bLength=9, bDescriptorType=2, wTotalLength=39, bNumInterfaces=1, bConfigurationValue=1,
+                     iConfiguration=0, bmAttributes=0xC0, bMaxPower=1)
+
+    def get_interface_descriptor(self, dev, intf, alt, config):
+        if config != 0 or intf != 0 or alt != 0:
+            raise IndexError("no such interface or alternate setting")
+        return _Desc(bLength=9, bDescriptorType=4, bInterfaceNumber=0, bAlternateSetting=0, bNumEndpoints=3,
+                     bInterfaceClass=6, bInterfaceSubClass=1, bInterfaceProtocol=1, iInterface=0)
+
+    def get_endpoint_descriptor(self, dev, ep, intf, alt, config):
+        table = [(EP_BULK_IN, 2, MAX_PACKET_BYTES, 0), (EP_BULK_OUT, 2, MAX_PACKET_BYTES, 0), (EP_INTR_IN, 3, 64, 8)]
+        if config != 0 or intf != 0 or alt != 0 or not 0 <= ep < len(table):
+            raise IndexError("no such endpoint")
+        address, attributes, size, interval = table[ep]
+        return _Desc(bLength=7, bDescriptorType=5, bEndpointAddress=address, bmAttributes=attributes,
+                     wMaxPacketSize=size, bInterval=interval, bRefresh=0, bSynchAddress=0)
+
+    # -- device handle ---------------------------------------------------
+    def open_device(self, dev):
+        self._gone(dev)
+        return _Handle(dev)
+
+    def close_device(self, dev_handle):
+        pass
+
+    def set_configuration(self, dev_handle, config_value):
+        self._gone(dev_handle)
+        self.configuration = config_value
+
+    def get_configuration(self, dev_handle):
+        self._gone(dev_handle)
+        return self.configuration
+
+    def set_interface_altsetting(self, dev_handle, intf, altsetting):
+        self._gone(dev_handle)
+
+    def claim_interface(self, dev_handle, intf):
+        self._gone(dev_handle)
+        dev_handle.claimed.add(intf)
+
+    def release_interface(self, dev_handle, intf):
+        dev_handle.claimed.discard(intf)
+
+    def is_kernel_driver_active(self, dev_handle, intf):
+        return False
+
+    def detach_kernel_driver(self, dev_handle, intf):
+        pass
+
+    def attach_kernel_driver(self, dev_handle, intf):
+        pass
+
+    def clear_halt(self, dev_handle, ep):
+        self._gone(dev_handle)
+        self._stalled = False
+
+    def reset_device(self, dev_handle):
+        self._gone(dev_handle)
+        with self._lock:
+            self._in.clear()
+            self._out.clear()
+            self.camera.disconnect()
+
+    # -- transfers -------------------------------------------------------
+    def bulk_write(self, dev_handle, ep, intf, data, timeout):
+        with self._lock:
+            self._gone(dev_handle)
+            raw = bytes(data)
+            self._out += raw
+            self._process_out()
+            return len(raw)
+
+    def _process_out(self) -> None:
+        while len(self._out) >= HEADER_BYTES:
+            try:
+                header = parse_header(self._out)
+            except ProtocolError:
+                self._out.clear()  # a device would stall; the host recovers with a reset
+                self._stalled = True
+                return
+            if len(self._out) < header.length:
+                return
+            raw = bytes(self._out[:header.length])
+            del self._out[:header.length]
+            container = parse_container(raw)
+            if container.type == ContainerType.COMMAND:
+                if self.camera.expects_data_out(container.code):
+                    self._pending_cmd = container
+                    continue
+                self._run(container, None)
+            elif container.type == ContainerType.DATA and self._pending_cmd is not None:
+                cmd, self._pending_cmd = self._pending_cmd, None
+                self._run(cmd, container.payload)
+
+    def _run(self, cmd, data_out) -> None:
+        f = self.faults
+        if f.stall_op is not None and cmd.code == f.stall_op:
+            f.stall_op = None
+            self._stalled = True
+            return
+        if f.busy_count:
+            self.camera.busy_responses += f.busy_count
+            f.busy_count = 0
+        self.camera.short_partial_bytes = f.short_read_bytes
+        reply = self.camera.handle(cmd, data_out)
+        resp_raw = pack_response(reply.response.code, reply.response.transaction_id, reply.response.params)
+        if f.corrupt_op is not None and cmd.code == f.corrupt_op:
+            f.corrupt_op = None
+            resp_raw = corrupt_container(resp_raw)
+        if f.disconnect_after_in_bytes is not None and cmd.code in DOWNLOAD_OPS:
+            self._disconnect_armed_at = self.in_bytes_total + f.disconnect_after_in_bytes
+            f.disconnect_after_in_bytes = None
+        if reply.data is not None:
+            data = memoryview(reply.data).cast("B")
+            head = memoryview(pack_data_header(cmd.code, cmd.transaction_id, len(data)))
+            if f.coalesce_response:
+                self._push([head, data, memoryview(resp_raw)])
+                return
+            self._push([head, data])
+        self._push([memoryview(resp_raw)])
+
+    def _push(self, segments: list[memoryview]) -> None:
+        length = sum(len(s) for s in segments)
+        self._in.append(_Transfer(segments, length))
+        if length % MAX_PACKET_BYTES == 0:
+            self._in.append(_Transfer([], 0, zlp=True))
+
+    def bulk_read(self, dev_handle, ep, intf, buff, timeout):
+        deadline = time.monotonic() + timeout / 1000.0
+        while True:
+            with self._lock:
+                self._gone(dev_handle)
+                if self._in and not self._stalled:
+                    return self._serve(buff)
+            if time.monotonic() >= deadline:
+                raise usb.core.USBTimeoutError("Operation timed out", -7, errno.ETIMEDOUT)
+            time.sleep(min(0.002, max(0.0, deadline - time.monotonic())))
+
+    def _serve(self, buff) -> int:
+        transfer = self._in[0]
+        if transfer.zlp:
+            self._in.popleft()
+            return 0
+        out = memoryview(buff).cast("B")
+        want = min(len(out), transfer.length - transfer.offset)
+        if self._disconnect_armed_at is not None:
+            allowed = self._disconnect_armed_at - self.in_bytes_total
+            if allowed <= 0:
+                self._disconnect_armed_at = None
+                self.unplug()
+                raise usb.core.USBError("No such device (it may have been disconnected)", -4, errno.ENODEV)
+            want = min(want, allowed)
+        written = 0
+        pos = transfer.offset
+        for seg in transfer.segments:  # copy the window [offset, offset+want) out of the segments
+            if pos >= len(seg):
+                pos -= len(seg)
+                continue
+            take = min(len(seg) - pos, want - written)
+            out[written:written + take] = seg[pos:pos + take]
+            written += take
+            pos = 0
+            if written == want:
+                break
+        transfer.offset += written
+        self.in_bytes_total += written
+        if transfer.offset >= transfer.length:
+            self._in.popleft()
+        self._pace(written)
+        return written
+
+    def _pace(self, n: int) -> None:
+        if not self.pace_bytes_per_s:
+            return
+        now = time.monotonic()
+        self._pace_free_at = max(now, self._pace_free_at) + n / self.pace_bytes_per_s
+        if self._pace_free_at > now:
+            time.sleep(self._pace_free_at - now)
+
+    def intr_read(self, dev_handle, ep, intf, buff, timeout):
+        deadline = time.monotonic() + timeout / 1000.0
+        while True:
+            with self._lock:
+                self._gone(dev_handle)
+                events = self.camera.take_std_events()
+                if events:
+                    ev = events[0]
+                    with self.camera.lock:
+                        self.camera._std_events[:0] = events[1:]  # noqa: SLF001 - put back the rest
+                    raw = pack_event_raw(ev)
+                    out = memoryview(buff).cast("B")
+                    out[:len(raw)] = raw
+                    return len(raw)
+            if time.monotonic() >= deadline:
+                raise usb.core.USBTimeoutError("Operation timed out", -7, errno.ETIMEDOUT)
+            time.sleep(0.002)
+
+    def ctrl_transfer(self, dev_handle, bmRequestType, bRequest, wValue, wIndex, data, timeout):
+        with self._lock:
+            self._gone(dev_handle)
+            out = memoryview(data).cast("B") if data is not None else memoryview(b"")
+            if bmRequestType == 0x80 and bRequest == 6 and (wValue >> 8) == 3:
+                index = wValue & 0xFF
+                payload = b"\x09\x04" if index == 0 else self._strings.get(index, "").encode("utf-16-le")
+                desc = bytes([2 + len(payload), 3]) + payload
+                n = min(len(out), len(desc))
+                out[:n] = desc[:n]
+                return n
+            if bmRequestType == 0x21 and bRequest == 0x64:  # cancel
+                self._in.clear()
+                self._pending_cmd = None
+                self._stalled = False
+                return len(out)
+            if bmRequestType == 0x21 and bRequest == 0x66:  # device reset
+                self._in.clear()
+                self._out.clear()
+                self._pending_cmd = None
+                self._stalled = False
+                return 0
+            if bmRequestType == 0xA1 and bRequest == 0x67:  # get device status
+                status = struct.pack("<HH", 4, Resp.DEVICE_BUSY if self._stalled else Resp.OK)
+                out[:4] = status
+                return 4
+            return 0
+
+
+def pack_event_raw(ev) -> bytes:
+    from devices.ptp.codec import pack_event
+
+    return pack_event(ev.code, ev.transaction_id, ev.params)

@@ -1,0 +1,89 @@
+"""Independent check: libgphoto2 (python-gphoto2 and Debian's gphoto2 CLI) drives `mca camera serve-sim` over PTP/IP."""
+from __future__ import annotations
+
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture()
+def served_sim():
+    port = _free_port()
+    proc = subprocess.Popen([sys.executable, "-c", "from capture.cli import main; main()", "camera", "serve-sim",
+                             "--ptpip", f"127.0.0.1:{port}"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 20
+        while True:
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
+                break
+            except OSError:
+                if time.monotonic() > deadline or proc.poll() is not None:
+                    pytest.fail(f"serve-sim did not start: {proc.stderr.read().decode() if proc.poll() is not None else 'timeout'}")
+                time.sleep(0.1)
+        yield port
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5)
+
+
+def _expected_first_shot() -> bytes:
+    from capture.tether import default_sim_frame_source
+
+    produced = default_sim_frame_source()(1)
+    return produced[1] if isinstance(produced, tuple) else produced
+
+
+def test_python_gphoto2_summary_then_capture_and_download(served_sim: int) -> None:
+    gp = pytest.importorskip("gphoto2", reason="python-gphoto2 (bundles libgphoto2) is not installed")
+    cam = gp.Camera()
+    ports = gp.PortInfoList()
+    ports.load()
+    # libgphoto2 takes the event port from a second ":PORT" (it defaults to 15740).
+    cam.set_port_info(ports[ports.lookup_path(f"ptpip:127.0.0.1:{served_sim}:{served_sim}")])
+    abilities = gp.CameraAbilitiesList()
+    abilities.load()
+    cam.set_abilities(abilities[abilities.lookup_model("PTP/IP Camera")])
+    cam.init()
+    try:
+        summary = str(cam.get_summary())
+        assert "Canon EOS 70D" in summary and "SIM70D0000001" in summary and "Canon EOS Capture" in summary
+        path = cam.capture(gp.GP_CAPTURE_IMAGE)
+        camera_file = cam.file_get(path.folder, path.name, gp.GP_FILE_TYPE_NORMAL)  # keep it alive while copying
+        data = bytes(memoryview(camera_file.get_data_and_size()))
+    finally:
+        cam.exit()
+    assert data == _expected_first_shot()
+
+
+@pytest.mark.skipif(shutil.which("gphoto2") is None, reason="Debian's gphoto2 command line is not installed")
+def test_gphoto2_cli_capture_and_download_gives_a_cr2_rawpy_opens(served_sim: int, tmp_path: Path) -> None:
+    port = f"ptpip:127.0.0.1:{served_sim}:{served_sim}"
+    summary = subprocess.run(["gphoto2", "--port", port, "--summary"], capture_output=True, text=True, timeout=60,
+                             cwd=tmp_path)
+    assert summary.returncode == 0, summary.stderr
+    assert "Model: Canon EOS 70D" in summary.stdout
+    run = subprocess.run(["gphoto2", "--port", port, "--capture-image-and-download", "--filename", "shot.cr2"],
+                         capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+    data = (tmp_path / "shot.cr2").read_bytes()
+    assert data == _expected_first_shot()
+    if data[8:10] == b"CR":
+        rawpy = pytest.importorskip("rawpy")
+        with rawpy.imread(str(tmp_path / "shot.cr2")) as raw:
+            assert raw.raw_image.size > 0

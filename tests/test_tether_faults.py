@@ -1,0 +1,94 @@
+"""The tethering session under faults: every captured shot ends on disk byte-identical with a correct catalog."""
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import pytest
+
+from capture.tether import TetherSession, camera_factory, make_sim_rig, sanitize_filename
+from devices.ptp.codes import Op
+from devices.sim_eos70d.faults import FaultPlan
+from devices.sim_eos70d.responder import default_frame_source
+
+
+def _run(tmp_path: Path, faults: FaultPlan, count: int = 3, frame_source=default_frame_source) -> tuple[TetherSession, object]:
+    rig = make_sim_rig(frame_source, faults=faults)
+    session = TetherSession(camera_factory("sim", rig=rig, timeout_s=0.3), tmp_path)
+    session.connect()
+    results = session.capture(count)
+    assert [r.status for r in results] == ["downloaded"] * count
+    return session, rig
+
+
+def _check(session: TetherSession, rig, tmp_path: Path, count: int = 3) -> None:
+    rows = session.catalog.rows()
+    card = rig.camera.card_files()
+    assert len(rows) == count
+    for row in rows:
+        data = (tmp_path / row.file_name).read_bytes()
+        assert data == card[row.camera_filename]
+        assert row.status == "downloaded" and row.size_bytes == len(data)
+        assert row.sha256 == hashlib.sha256(data).hexdigest()
+        assert row.camera_serial == "SIM70D0000001" and row.downloaded_at >= row.captured_at
+    assert not list(tmp_path.glob(".*.part"))
+    assert len(card) == count  # nothing deleted from the card by default
+    session.close()
+
+
+@pytest.mark.parametrize("faults", [
+    FaultPlan(disconnect_after_in_bytes=100_000),
+    FaultPlan(stall_op=Op.EOS_GET_PARTIAL_OBJECT),
+    FaultPlan(busy_count=2),
+    FaultPlan(short_read_bytes=1000),
+    FaultPlan(corrupt_op=Op.EOS_GET_PARTIAL_OBJECT),
+], ids=["disconnect-mid-download", "stall", "device-busy", "short-reads", "corrupt-container"])
+def test_faults_end_with_every_shot_on_disk(tmp_path: Path, faults: FaultPlan) -> None:
+    session, rig = _run(tmp_path, faults)
+    _check(session, rig, tmp_path)
+
+
+def test_disconnect_reconnects_and_fetches_missing(tmp_path: Path) -> None:
+    session, rig = _run(tmp_path, FaultPlan(disconnect_after_in_bytes=10_000))
+    assert session.reconnects >= 1 and rig.backend.device_id.address == 5  # re-enumerated at a new address
+    _check(session, rig, tmp_path)
+
+
+def test_delete_after_verify_empties_the_card(tmp_path: Path) -> None:
+    rig = make_sim_rig(default_frame_source)
+    session = TetherSession(camera_factory("sim", rig=rig), tmp_path, delete_after_verify=True)
+    session.connect()
+    session.capture(2)
+    assert rig.camera.card_files() == {}
+    assert len(list(tmp_path.glob("IMG_*.CR2"))) == 2
+    session.close()
+
+
+def test_hostile_file_names_stay_inside_the_output_folder(tmp_path: Path) -> None:
+    names = iter(["../../etc/passwd", "..", "IMG\x00\x1b[31m.CR2", "a/b\\c.CR2", "IMG_0001.CR2", "img_0001.cr2"])
+    source = lambda i: (next(names), b"x" * (100 + i))  # noqa: E731
+    out = tmp_path / "out"
+    session, rig = _run(out, FaultPlan(), count=6, frame_source=source)
+    files = sorted(p.name for p in out.iterdir() if p.name != "catalog.sqlite" and not p.name.startswith("catalog"))
+    assert all("/" not in f and ".." not in f and f.isprintable() for f in files)
+    assert len(files) == 6 and not (tmp_path / "etc").exists()
+    assert "IMG_0001_1.CR2" in files or "img_0001_1.cr2" in files
+    session.close()
+
+
+def test_sanitize_filename_rules() -> None:
+    assert sanitize_filename("../../x.CR2") == "x.CR2"
+    assert sanitize_filename("..") == "shot"
+    assert sanitize_filename("A.CR2", {"a.cr2"}) == "A_1.CR2"
+    assert "\x1b" not in sanitize_filename("\x1bIMG.CR2")
+
+
+def test_tethered_mode_downloads_shutter_button_shots(tmp_path: Path) -> None:
+    rig = make_sim_rig(default_frame_source)
+    session = TetherSession(camera_factory("sim", rig=rig), tmp_path)
+    session.connect()
+    rig.camera.press_shutter_button()
+    rig.camera.press_shutter_button()
+    results = session.tethered(lambda: False, max_shots=2)
+    assert [r.path.read_bytes() for r in results] == [rig.camera.file_on_card(f"IMG_000{i}.CR2") for i in (1, 2)]
+    session.close()
