@@ -29,25 +29,30 @@ RETRIES = 6
 RECONNECT_ATTEMPTS = 5
 
 
-def default_sim_frame_source() -> Callable[[int], Any]:
+def default_sim_frame_source(size: str | float | None = None, profile_name: str = "paper-70d") -> Callable[[int], Any]:
     """The frame source of `--camera sim`: what the simulated EOS 70D "photographs" (index -> (name, bytes)).
 
-    Hook for the lead: point this at the MCA scene simulator. For now each shot is a small
-    real CR2 (`capture.cr2.cr2_bytes`, deterministic noise mosaic, 480 x 720 px) that rawpy opens;
-    when the CR2 writer is missing, deterministic stand-in bytes.
+    Shot N is the MCA simulator's rendering of the paper's Fig. 4 scene number N (paper-a ... paper-g,
+    cycling), written as a Canon EOS 70D CR2, deterministic for a given index. `size` is "full"
+    (5472 x 3648, the default), "small" or a scale in (0, 1]; the environment variable
+    `MCA_SIM_SIZE` sets it for a whole session (the tests use "small").
     """
-    try:
-        from capture.cr2 import cr2_bytes
-    except ImportError:
-        from devices.sim_eos70d.responder import default_frame_source
+    from capture.profiles import load_profile
+    from capture.simulated_shots import capture_cr2_bytes, render_scene
+    from processing.scenes import scene_names
 
-        return default_frame_source
+    chosen_size = size if size is not None else os.environ.get("MCA_SIM_SIZE", "full")
+    try:
+        chosen_size = float(chosen_size)
+    except (TypeError, ValueError):
+        pass
+    profile = load_profile(profile_name)
+    scenes = scene_names()
 
     def frame(index: int) -> tuple[str, bytes]:
-        import numpy as np
-
-        mosaic = np.random.default_rng(index).integers(2100, 14000, (480, 720)).astype(np.uint16)
-        return f"IMG_{index:04d}.CR2", cr2_bytes(mosaic)
+        scene = scenes[(index - 1) % len(scenes)]
+        capture = render_scene(scene, profile, size=chosen_size, seed=index)
+        return f"IMG_{index:04d}.CR2", capture_cr2_bytes(capture, profile)
 
     return frame
 
