@@ -1,0 +1,569 @@
+"""Headless batches of `process_file`: discovery, a local process pool or a Dask cluster, watch mode, progress, summary.
+
+One driver loop (`run_batch`) serves every way of running: it finds the inputs,
+hands them to a runner (in this process, a spawn-context process pool, or a Dask
+distributed client), keeps at most the runner's capacity in flight, reports
+progress, and returns every file's `FileOutcome`. A bad file never stops the batch;
+finished output folders (result.json present) are skipped unless forced.
+"""
+from __future__ import annotations
+
+import concurrent.futures
+import multiprocessing
+import os
+import sys
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable, Protocol
+
+from capture.pipeline_app import (RECORDING_NAME, STAGES, SUPPORTED_SUFFIXES, FileOutcome, PipelineFunction,
+                                  output_dir_for, process_file)
+from processing.camera import CameraProfile
+
+
+class BatchError(RuntimeError):
+    """A batch that cannot start (no inputs, unreachable cluster); the message says what to do."""
+
+
+@dataclass(frozen=True)
+class Task:
+    """One input file and where its outputs go."""
+
+    input_path: Path
+    out_name: str
+    record_path: Path | None = None
+
+
+# --- discovery ------------------------------------------------------------------------------------------------------
+
+
+def _candidates(source: Path) -> list[Path]:
+    if source.is_dir():
+        return sorted(p for p in source.iterdir()
+                      if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in SUPPORTED_SUFFIXES)
+    return [source]   # an explicit file is always tried: a wrong one fails with its reason
+
+
+def discover_inputs(sources: Iterable[str | Path]) -> list[Path]:
+    """Input files: explicit files as given, folders' supported files (not recursive, hidden ones skipped)."""
+    found: list[Path] = []
+    seen: set[Path] = set()
+    for source in sources:
+        for path in _candidates(Path(source)):
+            key = path.resolve()
+            if key not in seen:
+                seen.add(key)
+                found.append(path)
+    return found
+
+
+def assign_name(path: Path, taken: dict[str, Path]) -> str:
+    """The output folder name for `path`: its stem, or `<stem>-<ext>` when another input already has that stem."""
+    name = path.stem
+    owner = taken.get(name)
+    if owner is not None and owner.resolve() != path.resolve():
+        name = f"{path.stem}-{path.suffix.lower().lstrip('.')}"
+        index = 2
+        while name in taken and taken[name].resolve() != path.resolve():
+            name = f"{path.stem}-{path.suffix.lower().lstrip('.')}-{index}"
+            index += 1
+    taken.setdefault(name, path)
+    return name
+
+
+# --- runners --------------------------------------------------------------------------------------------------------
+
+
+class Runner(Protocol):
+    """Runs tasks somewhere; `wait` returns the finished ones (possibly none before `timeout_s`)."""
+
+    capacity: int
+
+    def submit(self, task: Task) -> None: ...
+
+    def wait(self, timeout_s: float) -> list[tuple[Task, FileOutcome]]: ...
+
+    def cancel(self) -> list[Task]: ...
+
+    def close(self) -> None: ...
+
+
+@dataclass
+class _Job:
+    out_root: Path
+    profile: CameraProfile
+    force: bool
+    pipeline: PipelineFunction | None
+    on_stage: Callable[[Task, str], None] | None = None   # progress display, called in this process
+
+    def kwargs(self, task: Task) -> dict[str, Any]:
+        kwargs: dict[str, Any] = {"force": self.force, "record_path": task.record_path, "out_name": task.out_name}
+        if self.pipeline is not None:
+            kwargs["pipeline"] = self.pipeline
+        return kwargs
+
+    def failed(self, task: Task, reason: str) -> FileOutcome:
+        return runner_failed(self.out_root, task, reason)
+
+
+class InlineRunner:
+    """Runs each task in this process, one at a time (`--workers 1`)."""
+
+    capacity = 1
+
+    def __init__(self, job: _Job) -> None:
+        self.job = job
+        self.queue: deque[Task] = deque()
+
+    def submit(self, task: Task) -> None:
+        self.queue.append(task)
+
+    def wait(self, timeout_s: float) -> list[tuple[Task, FileOutcome]]:
+        if not self.queue:
+            return []
+        task = self.queue.popleft()
+        report = self.job.on_stage
+        on_stage = None if report is None else (lambda stage: report(task, stage))
+        return [(task, process_file(task.input_path, self.job.out_root, self.job.profile, on_stage=on_stage,
+                                    **self.job.kwargs(task)))]
+
+    def cancel(self) -> list[Task]:
+        cancelled = list(self.queue)
+        self.queue.clear()
+        return cancelled
+
+    def close(self) -> None:
+        return None
+
+
+_worker_stage_queue: Any = None    # in a pool worker: where stage announcements go (set by the initializer)
+
+
+def _init_pool_worker(queue: Any) -> None:
+    global _worker_stage_queue
+    _worker_stage_queue = queue
+
+
+def _pool_process_file(input_path: Path, out_root: Path, profile: CameraProfile, key: str,
+                       **kwargs: Any) -> FileOutcome:
+    """`process_file` in a pool worker, announcing its stages as (key, stage) on the pool's queue."""
+    queue = _worker_stage_queue
+    on_stage = None if queue is None else (lambda stage: queue.put((key, stage)))
+    return process_file(input_path, out_root, profile, on_stage=on_stage, **kwargs)
+
+
+class PoolRunner:
+    """A spawn-context process pool on the local cores (`--workers N`)."""
+
+    def __init__(self, job: _Job, workers: int) -> None:
+        self.job = job
+        self.capacity = workers
+        context = multiprocessing.get_context("spawn")
+        self.stages = context.Queue() if job.on_stage is not None else None
+        self.executor = concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=context,
+                                                               initializer=_init_pool_worker,
+                                                               initargs=(self.stages,))
+        self.futures: dict[concurrent.futures.Future, Task] = {}
+        self.by_key: dict[str, Task] = {}
+
+    def submit(self, task: Task) -> None:
+        future = self.executor.submit(_pool_process_file, task.input_path, self.job.out_root, self.job.profile,
+                                      task.out_name, **self.job.kwargs(task))
+        self.futures[future] = task
+        self.by_key[task.out_name] = task
+
+    def _drain_stages(self) -> None:
+        import queue as queue_module
+
+        while self.stages is not None and self.job.on_stage is not None:
+            try:
+                key, stage = self.stages.get_nowait()
+            except (queue_module.Empty, OSError, EOFError):
+                return
+            task = self.by_key.get(key)
+            if task is not None:
+                self.job.on_stage(task, stage)
+
+    def wait(self, timeout_s: float) -> list[tuple[Task, FileOutcome]]:
+        if not self.futures:
+            return []
+        deadline = time.monotonic() + timeout_s
+        while True:
+            self._drain_stages()
+            slice_s = max(0.0, min(0.1, deadline - time.monotonic())) if self.stages is not None else timeout_s
+            done, _ = concurrent.futures.wait(list(self.futures), timeout=slice_s,
+                                              return_when=concurrent.futures.FIRST_COMPLETED)
+            if done or time.monotonic() >= deadline:
+                break
+        self._drain_stages()
+        finished = []
+        for future in done:
+            task = self.futures.pop(future)
+            self.by_key.pop(task.out_name, None)
+            try:
+                finished.append((task, future.result()))
+            except concurrent.futures.process.BrokenProcessPool:
+                finished.append((task, self.job.failed(
+                    task, "a worker process died (crashed or ran out of memory) while this batch ran; "
+                          "rerun to retry, or use fewer --workers")))
+            except BaseException as exc:  # noqa: BLE001 - the worker was interrupted or could not run the task
+                finished.append((task, self.job.failed(task, f"{type(exc).__name__}: {exc}")))
+        return finished
+
+    def cancel(self) -> list[Task]:
+        cancelled = [task for future, task in self.futures.items() if future.cancel()]
+        return cancelled
+
+    def close(self) -> None:
+        self.executor.shutdown(wait=True, cancel_futures=True)
+        if self.stages is not None:
+            self.stages.close()
+            self.stages.join_thread()
+
+
+class DaskRunner:
+    """The same tasks on a Dask distributed cluster (`--cluster tcp://HOST:8786`); inputs and outputs on a shared
+    filesystem, the package installed on every worker."""
+
+    def __init__(self, job: _Job, address: str, connect_timeout_s: float = 10.0) -> None:
+        try:
+            from distributed import Client
+        except ImportError as exc:
+            raise BatchError("--cluster needs dask distributed: pip install 'mca-appliance[cluster]'") from exc
+        self.job = job
+        self.address = address
+        try:
+            self.client = Client(address, timeout=f"{connect_timeout_s}s", set_as_default=False)
+        except (OSError, TimeoutError) as exc:
+            raise BatchError(f"cannot reach the Dask scheduler at {address} ({exc}); start one with "
+                             f"`dask scheduler` and workers with `dask worker {address}` (see docs/batch.md)") from exc
+        from distributed import as_completed
+
+        threads = sum(self.client.nthreads().values())
+        self.capacity = max(2, 2 * threads)
+        self.futures: dict[Any, Task] = {}
+        self.completed = as_completed(loop=self.client.loop)
+
+    def submit(self, task: Task) -> None:
+        future = self.client.submit(process_file, task.input_path, self.job.out_root, self.job.profile,
+                                    pure=False, key=f"mca-process-{task.out_name}-{os.urandom(4).hex()}",
+                                    **self.job.kwargs(task))
+        self.futures[future] = task
+        self.completed.add(future)
+
+    def wait(self, timeout_s: float) -> list[tuple[Task, FileOutcome]]:
+        if not self.futures:
+            return []
+        deadline = time.monotonic() + timeout_s
+        done = self.completed.next_batch(block=False)
+        while not done and time.monotonic() < deadline:
+            time.sleep(0.02)
+            done = self.completed.next_batch(block=False)
+        finished = []
+        for future in done:
+            task = self.futures.pop(future, None)
+            if task is None:
+                continue
+            try:
+                finished.append((task, future.result()))
+            except (ImportError, ModuleNotFoundError) as exc:
+                finished.append((task, self.job.failed(
+                    task, f"a Dask worker could not import the appliance ({exc}); install mca-appliance on every "
+                          "worker (docs/batch.md)")))
+            except Exception as exc:  # noqa: BLE001 - a lost worker, a cancelled future, a serialisation error
+                finished.append((task, self.job.failed(task, f"on the Dask cluster: {type(exc).__name__}: {exc}")))
+        return finished
+
+    def cancel(self) -> list[Task]:
+        cancelled = list(self.futures.values())
+        self.completed.clear()
+        self.client.cancel(list(self.futures))
+        self.futures.clear()
+        return cancelled
+
+    def close(self) -> None:
+        self.client.close()
+
+
+# --- progress -------------------------------------------------------------------------------------------------------
+
+
+class Progress(Protocol):
+    def discovered(self, total: int) -> None: ...
+
+    def started(self, task: Task) -> None: ...
+
+    def stage(self, task: Task, stage: str) -> None: ...
+
+    def finished(self, task: Task, outcome: FileOutcome) -> None: ...
+
+    def close(self) -> None: ...
+
+    wants_stages: bool
+
+
+class SilentProgress:
+    wants_stages = False
+
+    def discovered(self, total: int) -> None: ...
+
+    def started(self, task: Task) -> None: ...
+
+    def stage(self, task: Task, stage: str) -> None: ...
+
+    def finished(self, task: Task, outcome: FileOutcome) -> None: ...
+
+    def close(self) -> None: ...
+
+
+class LineProgress:
+    """One plain line per finished file (for logs, pipes and CI)."""
+
+    wants_stages = False
+
+    def __init__(self, write: Callable[[str], None] = print) -> None:
+        self.write = write
+        self.total = 0
+        self.count = 0
+
+    def discovered(self, total: int) -> None:
+        self.total = total
+
+    def started(self, task: Task) -> None:
+        return None
+
+    def stage(self, task: Task, stage: str) -> None:
+        return None
+
+    def finished(self, task: Task, outcome: FileOutcome) -> None:
+        self.count += 1
+        detail = outcome.reason if outcome.status == "failed" else (
+            f"{outcome.regions} regions" if outcome.regions is not None else "")
+        self.write(f"[{self.count}/{self.total}] {outcome.status:<7} {task.input_path.name} "
+                   f"{outcome.seconds:.1f} s {detail}".rstrip())
+
+    def close(self) -> None:
+        return None
+
+
+class RichProgress:
+    """An overall bar plus one row per file in flight, advancing through the pipeline stages (terminals)."""
+
+    wants_stages = True
+
+    def __init__(self, console: Any = None) -> None:
+        from rich.progress import (BarColumn, MofNCompleteColumn, Progress as RichBar, SpinnerColumn, TextColumn,
+                                   TimeElapsedColumn)
+
+        self.bar = RichBar(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                           TimeElapsedColumn(), console=console)
+        self.bar.start()
+        self.overall = self.bar.add_task("all files", total=0)
+        self.rows: dict[Task, Any] = {}
+
+    def discovered(self, total: int) -> None:
+        self.bar.update(self.overall, total=total)
+
+    def started(self, task: Task) -> None:
+        self.rows[task] = self.bar.add_task(f"  {task.input_path.name}", total=len(STAGES))
+
+    def stage(self, task: Task, stage: str) -> None:
+        row = self.rows.get(task)
+        if row is not None:
+            self.bar.update(row, advance=1, description=f"  {task.input_path.name}: {stage}")
+
+    def finished(self, task: Task, outcome: FileOutcome) -> None:
+        row = self.rows.pop(task, None)
+        if row is not None:
+            self.bar.remove_task(row)
+        self.bar.advance(self.overall)
+        if outcome.status == "failed":
+            self.bar.console.print(f"[red]failed[/red] {outcome.reason}", highlight=False, markup=True)
+
+    def close(self) -> None:
+        self.bar.stop()
+
+
+# --- the driver loop ------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class BatchReport:
+    """Every file's outcome, in the order they finished, plus the merged recording if one was asked for."""
+
+    outcomes: list[FileOutcome] = field(default_factory=list)
+    recording: Path | None = None
+    interrupted: bool = False
+
+    @property
+    def failed(self) -> list[FileOutcome]:
+        return [o for o in self.outcomes if o.status == "failed"]
+
+    def count(self, status: str) -> int:
+        return sum(1 for o in self.outcomes if o.status == status)
+
+
+def make_runner(out_root: Path, profile: CameraProfile, *, workers: int = 1, cluster: str | None = None,
+                force: bool = False, pipeline: PipelineFunction | None = None,
+                on_stage: Callable[[Task, str], None] | None = None) -> Runner:
+    """The runner for the options: a Dask client for `cluster`, else a process pool, or inline for one worker.
+
+    `on_stage(task, stage)` hears each file's stages (not from a Dask cluster).
+    """
+    job = _Job(out_root=out_root, profile=profile, force=force, pipeline=pipeline, on_stage=on_stage)
+    if cluster:
+        return DaskRunner(job, cluster)
+    if workers < 1:
+        raise BatchError(f"--workers must be at least 1, got {workers}")
+    return InlineRunner(job) if workers == 1 else PoolRunner(job, workers)
+
+
+def _stable(path: Path, seen: dict[Path, tuple[int, int, float]], settle_s: float) -> bool:
+    """True once the file's size and modification time have not changed for `settle_s` seconds."""
+    try:
+        stat = path.stat()
+    except OSError:
+        return False
+    now = time.monotonic()
+    previous = seen.get(path)
+    if previous is None or previous[:2] != (stat.st_size, stat.st_mtime_ns):
+        seen[path] = (stat.st_size, stat.st_mtime_ns, now)
+        return False
+    return stat.st_size > 0 and now - previous[2] >= settle_s
+
+
+def run_batch(sources: list[Path], out_root: Path, profile: CameraProfile, *, workers: int = 1,
+              cluster: str | None = None, force: bool = False, record: Path | None = None, watch: bool = False,
+              watch_timeout_s: float | None = None, poll_interval_s: float = 1.0, settle_s: float = 2.0,
+              progress: Progress | None = None, pipeline: PipelineFunction | None = None) -> BatchReport:
+    """Process every input under `sources` into `out_root`; with `watch`, keep processing files as they arrive.
+
+    Watch mode polls the folders every `poll_interval_s`, takes a file once its size and time stamp
+    have not changed for `settle_s` seconds, and stops on Ctrl-C or after `watch_timeout_s` without a new or running file.
+    With `record`, each file records into `<out>/<name>/recording.rrd`, merged into `record` at the end.
+    """
+    out_root = Path(out_root).resolve()
+    sources = [Path(s).resolve() for s in sources]   # absolute: cluster workers see the same shared paths
+    out_root.mkdir(parents=True, exist_ok=True)
+    progress = progress or SilentProgress()
+    report = BatchReport()
+    runner = make_runner(out_root, profile, workers=workers, cluster=cluster, force=force, pipeline=pipeline,
+                         on_stage=progress.stage if getattr(progress, "wants_stages", False) else None)
+    names: dict[str, Path] = {}
+    known: set[Path] = set()
+    sizes: dict[Path, tuple[int, int, float]] = {}
+    queue: deque[Task] = deque()
+    in_flight = 0
+    last_activity = time.monotonic()
+    finished_tasks: list[Task] = []
+
+    def discover() -> None:
+        nonlocal last_activity
+        new = False
+        for path in discover_inputs(sources):
+            if path in known:
+                continue
+            if watch and not _stable(path, sizes, settle_s):
+                last_activity = time.monotonic()      # still arriving: keep waiting for it
+                continue
+            known.add(path)
+            name = assign_name(path, names)
+            queue.append(Task(path, name, out_root / name / RECORDING_NAME if record else None))
+            new = True
+        if new:
+            last_activity = time.monotonic()
+            progress.discovered(len(known))
+
+    try:
+        discover()
+        if not watch and not known:
+            raise BatchError("no input files found in " + ", ".join(str(s) for s in sources)
+                             + f"; give files or folders holding {', '.join(sorted(SUPPORTED_SUFFIXES))}")
+        while True:
+            while queue and in_flight < runner.capacity:
+                task = queue.popleft()
+                runner.submit(task)
+                progress.started(task)
+                in_flight += 1
+            if in_flight:
+                for task, outcome in runner.wait(poll_interval_s if watch else 0.5):
+                    in_flight -= 1
+                    report.outcomes.append(outcome)
+                    finished_tasks.append(task)
+                    progress.finished(task, outcome)
+                    last_activity = time.monotonic()
+            elif not watch:
+                break
+            elif watch_timeout_s is not None and time.monotonic() - last_activity > watch_timeout_s:
+                break
+            else:
+                time.sleep(poll_interval_s)
+            if watch:
+                discover()
+    except KeyboardInterrupt:
+        report.interrupted = True
+        for task in runner.cancel() + list(queue):
+            report.outcomes.append(runner_failed(out_root, task, "interrupted (Ctrl-C) before it finished; "
+                                                                 "rerun the same command to finish it"))
+        queue.clear()
+    finally:
+        progress.close()
+        runner.close()
+
+    if record is not None:
+        report.recording = merge_batch_recordings(finished_tasks, report.outcomes, Path(record))
+    return report
+
+
+def runner_failed(out_root: Path, task: Task, reason: str) -> FileOutcome:
+    return FileOutcome(task.input_path, "failed", output_dir_for(task.input_path, out_root, task.out_name),
+                       reason=f"{task.input_path}: {reason}")
+
+
+def merge_batch_recordings(tasks: list[Task], outcomes: list[FileOutcome], out_path: Path) -> Path | None:
+    """Merge the per-file recordings of the finished (done or skipped) files, in input order, into `out_path`."""
+    ok = {o.input_path for o in outcomes if o.status != "failed"}
+    paths = sorted((t.record_path for t in tasks if t.input_path in ok and t.record_path and t.record_path.is_file()),
+                   key=lambda p: p.parent.name)
+    if not paths:
+        return None
+    from capture.recording import merge_recordings
+
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    merge_recordings(paths, out_path)
+    return out_path
+
+
+# --- the summary ----------------------------------------------------------------------------------------------------
+
+
+def print_summary(report: BatchReport, console: Any = None) -> None:
+    """A table of every file, totals, and the failures with their reasons in full."""
+    from rich.console import Console
+    from rich.table import Table
+
+    if console is None:
+        console = Console() if sys.stdout.isatty() else Console(width=160)
+    table = Table(title="mca process", show_lines=False)
+    for column in ("file", "status", "seconds", "regions", "output"):
+        table.add_column(column, overflow="fold")
+    style = {"done": "green", "skipped": "cyan", "failed": "red"}
+    for outcome in sorted(report.outcomes, key=lambda o: str(o.input_path)):
+        table.add_row(outcome.input_path.name, f"[{style[outcome.status]}]{outcome.status}[/]",
+                      f"{outcome.seconds:.1f}", "" if outcome.regions is None else str(outcome.regions),
+                      str(outcome.output_dir))
+    console.print(table)
+    console.print(f"{report.count('done')} done, {report.count('skipped')} skipped, {report.count('failed')} failed"
+                  + (" (stopped by Ctrl-C)" if report.interrupted else ""), highlight=False)
+    if report.recording is not None:
+        console.print(f"recording: {report.recording}", highlight=False)
+    if report.failed:
+        print("failed files:", file=sys.stderr)
+        for outcome in report.failed:
+            print(f"  {outcome.reason}", file=sys.stderr)
+
+
+__all__ = ["BatchError", "BatchReport", "LineProgress", "RichProgress", "SilentProgress", "Task", "assign_name",
+           "discover_inputs", "make_runner", "print_summary", "run_batch"]

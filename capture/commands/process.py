@@ -1,0 +1,81 @@
+"""`mca process`: photographs in, depth maps, regions, layers and 3D scenes out (locally, in parallel or on Dask)."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+
+def resolve_profile(name: str | None):
+    """The profile for `--profile`: a built-in name or TOML path; `none` is the default filter geometry without lens
+    data (results in disparity pixels only)."""
+    import dataclasses
+
+    from capture.profiles import DEFAULT_PROFILE, load_profile
+
+    if name is not None and name.lower() == "none":
+        base = load_profile(DEFAULT_PROFILE)
+        return dataclasses.replace(base, name="none", lens=None, source=f"{base.source} (filter geometry only)")
+    return load_profile(name or DEFAULT_PROFILE)
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("process")
+    def process(
+        inputs: List[Path] = typer.Argument(..., metavar="INPUT...",
+                                            help="Photographs (CR2, DNG, TIFF, PNG, JPEG, PPM) or folders of them."),
+        out: Path = typer.Option(..., "--out", "-o", help="Output folder; each input gets OUT/<stem>/."),
+        profile: Optional[str] = typer.Option(None, "--profile", "-p",
+                                              help="Built-in profile name or TOML file (default paper-70d); "
+                                                   "'none' = filter geometry only, disparities in pixels."),
+        workers: int = typer.Option(1, "--workers", "-j", min=1, help="Files processed in parallel on this machine."),
+        force: bool = typer.Option(False, "--force", help="Redo inputs whose output folder is already finished."),
+        watch: bool = typer.Option(False, "--watch", help="Keep processing files as they arrive in the folders."),
+        watch_timeout: Optional[float] = typer.Option(None, "--watch-timeout", metavar="S",
+                                                      help="With --watch: stop after S seconds with nothing new."),
+        poll_interval: float = typer.Option(1.0, "--poll-interval", metavar="S",
+                                            help="With --watch: seconds between looks at the folders."),
+        settle: float = typer.Option(2.0, "--settle", metavar="S",
+                                     help="With --watch: take a file once unchanged for S seconds."),
+        record: Optional[Path] = typer.Option(None, "--record", metavar="FILE.rrd",
+                                              help="Record every shot (rerun); merged into FILE.rrd at the end."),
+        cluster: Optional[str] = typer.Option(None, "--cluster", metavar="tcp://HOST:8786",
+                                              help="Run on a Dask distributed scheduler (shared filesystem)."),
+        quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress, only the summary."),
+    ) -> None:
+        """Process photographs into OUT/<stem>/: depth.tiff, regions.png, result.json, all_in_focus.png, layers/,
+        scene.ply and scene.glb (docs/outputs.md). Finished folders are skipped unless --force; exits 1 when any
+        file failed."""
+        import sys
+
+        from capture.batch import BatchError, LineProgress, RichProgress, SilentProgress, print_summary, run_batch
+        from processing.camera import ProfileError
+
+        try:
+            camera_profile = resolve_profile(profile)
+        except ProfileError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(2)
+        if out.exists() and not out.is_dir():
+            typer.echo(f"error: --out {out} is a file; give a folder for the outputs", err=True)
+            raise typer.Exit(2)
+        if record is not None and record.suffix != ".rrd":
+            typer.echo(f"error: --record {record}: give a .rrd file name", err=True)
+            raise typer.Exit(2)
+        if quiet:
+            progress = SilentProgress()
+        elif sys.stdout.isatty():
+            progress = RichProgress()
+        else:
+            progress = LineProgress(lambda line: typer.echo(line))
+        try:
+            report = run_batch(list(inputs), out, camera_profile, workers=workers, cluster=cluster, force=force,
+                               record=record, watch=watch, watch_timeout_s=watch_timeout,
+                               poll_interval_s=poll_interval, settle_s=settle, progress=progress)
+        except BatchError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(2)
+        print_summary(report)
+        if report.failed:
+            raise typer.Exit(1)

@@ -1,0 +1,368 @@
+"""Writers for the per-shot output files (TIFF, PNG, JSON, PLY point cloud, glTF binary planes), all atomic.
+
+Every writer puts its bytes under a temporary name in the destination folder and
+renames it over the final name with `os.replace`, so a reader (or a resumed batch)
+never sees half a file: either the old file, the new one, or none. A writer that
+fails leaves no temporary file behind. The PLY and GLB formats are written by the
+small encoders below, and read back by their twins (`read_ply`, `read_glb`) which
+the tests and `mca` tools use to check them.
+"""
+from __future__ import annotations
+
+import contextlib
+import functools
+import json
+import math
+import os
+import struct
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+TEMP_SUFFIX = ".tmp"
+
+
+# --- atomic file creation -------------------------------------------------------------------------------------------
+
+
+def temporary_name(path: Path) -> Path:
+    """A hidden, unique name beside `path` for writing it before the final rename."""
+    return path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}{TEMP_SUFFIX}")
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary path beside `path`; on success rename it to `path`, on failure delete it.
+
+    For writers that insist on a file name (tifffile): `with atomic_path(p) as tmp: write(tmp)`.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temporary_name(path)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        raise
+
+
+def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
+    """Write `data` to `path` atomically (temporary file in the same folder, flushed, then os.replace)."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as handle:
+            handle.write(data)
+            handle.flush()
+            os.fsync(handle.fileno())
+    return path
+
+
+# --- images ---------------------------------------------------------------------------------------------------------
+
+
+@functools.lru_cache(maxsize=1)
+def _srgb8_table() -> np.ndarray:
+    """8-bit sRGB of linear values k / 65535 (IEC 61966-2-1 transfer curve)."""
+    x = np.arange(65536, dtype=np.float64) / 65535.0
+    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
+    return np.round(srgb * 255.0).astype(np.uint8)
+
+
+def linear_to_srgb8(linear: np.ndarray) -> np.ndarray:
+    """Linear light in [0, 1] to 8-bit sRGB (IEC 61966-2-1 curve, through a 16-bit table); clipped, NaN as 0."""
+    x = np.nan_to_num(np.asarray(linear, dtype=np.float32), nan=0.0, posinf=1.0, neginf=0.0)
+    index = (np.clip(x, 0.0, 1.0) * np.float32(65535.0) + np.float32(0.5)).astype(np.uint16)
+    return _srgb8_table()[index]
+
+
+def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
+    """sRGB-encoded values in [0, 1] to linear light (inverse of the IEC 61966-2-1 curve), float32."""
+    x = np.asarray(encoded, dtype=np.float32)
+    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4)).astype(np.float32)
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    """PNG bytes of a uint8/uint16 image: (H, W) grey, (H, W, 3) RGB or (H, W, 4) RGBA."""
+    import cv2
+
+    image = np.ascontiguousarray(image)
+    if image.dtype not in (np.uint8, np.uint16):
+        raise TypeError(f"PNG holds uint8 or uint16 samples, got {image.dtype}")
+    if image.ndim == 3 and image.shape[2] == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    elif image.ndim == 3 and image.shape[2] == 4:
+        image = cv2.cvtColor(image, cv2.COLOR_RGBA2BGRA)
+    elif image.ndim != 2:
+        raise ValueError(f"PNG image must be (H, W), (H, W, 3) or (H, W, 4), got shape {image.shape}")
+    ok, data = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 3])
+    if not ok:
+        raise ValueError(f"OpenCV could not encode a PNG of shape {image.shape}")
+    return data.tobytes()
+
+
+def write_png(path: str | Path, image: np.ndarray) -> Path:
+    """Write a uint8/uint16 grey, RGB or RGBA image as PNG, atomically."""
+    return write_bytes_atomic(path, encode_png(image))
+
+
+def write_tiff_float32(path: str | Path, image: np.ndarray) -> Path:
+    """Write a 2-D array as a single-page float32 TIFF (NaN kept), atomically."""
+    import tifffile
+
+    array = np.ascontiguousarray(image, dtype=np.float32)
+    if array.ndim != 2:
+        raise ValueError(f"expected a 2-D map, got shape {array.shape}")
+    with atomic_path(path) as tmp:
+        tifffile.imwrite(tmp, array, photometric="minisblack")
+    return Path(path)
+
+
+# --- JSON -----------------------------------------------------------------------------------------------------------
+
+
+def json_safe(value: Any) -> Any:
+    """Plain JSON types: numpy scalars and arrays unpacked, tuples to lists, NaN and infinities to null."""
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return json_safe(value.tolist())
+    if isinstance(value, np.generic):
+        return json_safe(value.item())
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, Path):
+        return str(value)
+    if value is None or isinstance(value, (str, int, bool)):
+        return value
+    return str(value)
+
+
+def write_json(path: str | Path, data: Any) -> Path:
+    """Write `data` as indented UTF-8 JSON (NaN written as null), atomically."""
+    text = json.dumps(json_safe(data), indent=2, allow_nan=False, ensure_ascii=False) + "\n"
+    return write_bytes_atomic(path, text.encode("utf-8"))
+
+
+# --- PLY point cloud ------------------------------------------------------------------------------------------------
+
+PLY_VERTEX = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "<i2", "int16": "<i2",
+              "ushort": "<u2", "uint16": "<u2", "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4",
+              "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8"}
+
+
+def encode_ply(points_mm: np.ndarray, colours_rgb8: np.ndarray, comments: tuple[str, ...] = ()) -> bytes:
+    """Binary little-endian PLY of N coloured points: (N, 3) float coordinates and (N, 3) uint8 RGB."""
+    points = np.asarray(points_mm, dtype=np.float32).reshape(-1, 3)
+    colours = np.asarray(colours_rgb8, dtype=np.uint8).reshape(-1, 3)
+    if len(points) != len(colours):
+        raise ValueError(f"{len(points)} points but {len(colours)} colours")
+    vertices = np.empty(len(points), dtype=PLY_VERTEX)
+    vertices["x"], vertices["y"], vertices["z"] = points[:, 0], points[:, 1], points[:, 2]
+    vertices["red"], vertices["green"], vertices["blue"] = colours[:, 0], colours[:, 1], colours[:, 2]
+    header = ["ply", "format binary_little_endian 1.0"]
+    header += [f"comment {c}" for c in comments]
+    header += [f"element vertex {len(points)}"]
+    header += [f"property {'float' if vertices.dtype[name].kind == 'f' else 'uchar'} {name}"
+               for name in PLY_VERTEX.names]
+    header += ["end_header"]
+    return ("\n".join(header) + "\n").encode("ascii") + vertices.tobytes()
+
+
+def write_ply(path: str | Path, points_mm: np.ndarray, colours_rgb8: np.ndarray,
+              comments: tuple[str, ...] = ()) -> Path:
+    """Write coloured points as a binary little-endian PLY, atomically."""
+    return write_bytes_atomic(path, encode_ply(points_mm, colours_rgb8, comments))
+
+
+def read_ply(path: str | Path) -> tuple[np.ndarray, list[str]]:
+    """Read a binary little-endian PLY with one vertex element of scalar properties: (structured array, comments)."""
+    data = Path(path).read_bytes()
+    end = data.find(b"end_header\n")
+    if not data.startswith(b"ply\n") or end < 0:
+        raise ValueError(f"{path}: not a PLY file (no 'ply' magic or no end_header)")
+    lines = data[:end].decode("ascii").splitlines()
+    if "format binary_little_endian 1.0" not in lines:
+        raise ValueError(f"{path}: only binary_little_endian 1.0 PLY is read here")
+    count, fields, comments, element = 0, [], [], None
+    for line in lines[1:]:
+        words = line.split()
+        if words[0] == "comment":
+            comments.append(line[len("comment "):])
+        elif words[0] == "element":
+            if element is not None:
+                raise ValueError(f"{path}: more than one element; only a vertex list is read here")
+            element, count = words[1], int(words[2])
+        elif words[0] == "property":
+            if words[1] == "list":
+                raise ValueError(f"{path}: list properties are not read here")
+            fields.append((words[2], _PLY_TYPES[words[1]]))
+    body = data[end + len(b"end_header\n"):]
+    dtype = np.dtype(fields)
+    if len(body) != count * dtype.itemsize:
+        raise ValueError(f"{path}: {len(body)} bytes of data for {count} vertices of {dtype.itemsize} bytes")
+    return np.frombuffer(body, dtype=dtype, count=count), comments
+
+
+# --- glTF 2.0 binary (GLB) with one textured quad per plane ---------------------------------------------------------
+
+GLB_MAGIC = 0x46546C67        # b"glTF"
+GLB_CHUNK_JSON = 0x4E4F534A   # b"JSON"
+GLB_CHUNK_BIN = 0x004E4942    # b"BIN\0"
+_FLOAT, _UNSIGNED_SHORT = 5126, 5123
+_ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
+_COMPONENTS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
+_COMPONENT_DTYPES = {5120: "i1", 5121: "u1", 5122: "<i2", 5123: "<u2", 5125: "<u4", 5126: "<f4"}
+
+# Camera frame (x right, y down, z forward, mm) to glTF (x right, y up, z toward the viewer, metres).
+CAMERA_MM_TO_GLTF_M = (0.001, 0.0, 0.0, 0.0,
+                       0.0, -0.001, 0.0, 0.0,
+                       0.0, 0.0, -0.001, 0.0,
+                       0.0, 0.0, 0.0, 1.0)   # column-major, as glTF stores node matrices
+
+
+@dataclass(frozen=True)
+class TexturedQuad:
+    """A flat rectangle in the camera frame (mm): corners top-left, top-right, bottom-right, bottom-left
+    as seen in the image; `texture_png` covers it with the image's top-left at the top-left corner."""
+
+    name: str
+    corners_mm: np.ndarray        # (4, 3) float
+    texture_png: bytes
+    extras: dict[str, Any] | None = None
+
+
+def _pad4(data: bytes, fill: bytes = b"\0") -> bytes:
+    return data + fill * (-len(data) % 4)
+
+
+def encode_glb(quads: list[TexturedQuad], *, root_matrix: tuple[float, ...] = CAMERA_MM_TO_GLTF_M,
+               root_name: str = "camera frame (mm)", generator: str = "mca-appliance capture.outputs") -> bytes:
+    """glTF 2.0 binary: one unlit, double-sided, alpha-blended textured quad per entry, under one root node.
+
+    Vertex positions stay in the quads' own units (mm, camera frame); the root node's matrix
+    maps them into glTF's frame (metres, y up, looking down -z).
+    """
+    blob = bytearray()
+    buffer_views: list[dict[str, Any]] = []
+    accessors: list[dict[str, Any]] = []
+
+    def view(data: bytes, target: int | None) -> int:
+        offset = len(blob)
+        blob.extend(_pad4(data))
+        entry: dict[str, Any] = {"buffer": 0, "byteOffset": offset, "byteLength": len(data)}
+        if target is not None:
+            entry["target"] = target
+        buffer_views.append(entry)
+        return len(buffer_views) - 1
+
+    def accessor(array: np.ndarray, kind: str, component: int, target: int, bounds: bool) -> int:
+        entry: dict[str, Any] = {"bufferView": view(array.tobytes(), target), "componentType": component,
+                                 "count": int(array.shape[0]), "type": kind}
+        if bounds:
+            values = array.reshape(array.shape[0], -1)
+            entry["min"] = [float(v) for v in values.min(axis=0)]
+            entry["max"] = [float(v) for v in values.max(axis=0)]
+        accessors.append(entry)
+        return len(accessors) - 1
+
+    texcoords = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype="<f4")
+    indices = np.array([0, 3, 2, 0, 2, 1], dtype="<u2")   # counter-clockwise seen from the camera (glTF +z)
+    meshes, materials, textures, images, nodes = [], [], [], [], []
+    for quad in quads:
+        corners = np.asarray(quad.corners_mm, dtype="<f4").reshape(4, 3)
+        if not np.isfinite(corners).all():
+            raise ValueError(f"quad '{quad.name}' has non-finite corners")
+        position = accessor(corners, "VEC3", _FLOAT, _ARRAY_BUFFER, bounds=True)
+        uv = accessor(texcoords, "VEC2", _FLOAT, _ARRAY_BUFFER, bounds=False)
+        index = accessor(indices, "SCALAR", _UNSIGNED_SHORT, _ELEMENT_ARRAY_BUFFER, bounds=True)
+        images.append({"bufferView": view(quad.texture_png, None), "mimeType": "image/png", "name": quad.name})
+        textures.append({"source": len(images) - 1, "sampler": 0})
+        materials.append({"name": quad.name, "doubleSided": True, "alphaMode": "BLEND",
+                          "pbrMetallicRoughness": {"baseColorTexture": {"index": len(textures) - 1},
+                                                   "metallicFactor": 0.0, "roughnessFactor": 1.0},
+                          "extensions": {"KHR_materials_unlit": {}}})
+        meshes.append({"name": quad.name, "primitives": [{"attributes": {"POSITION": position, "TEXCOORD_0": uv},
+                                                          "indices": index, "material": len(materials) - 1}]})
+        node: dict[str, Any] = {"name": quad.name, "mesh": len(meshes) - 1}
+        if quad.extras:
+            node["extras"] = json_safe(quad.extras)
+        nodes.append(node)
+    root: dict[str, Any] = {"name": root_name, "matrix": list(root_matrix)}
+    if nodes:
+        root["children"] = list(range(1, len(nodes) + 1))
+    gltf: dict[str, Any] = {
+        "asset": {"version": "2.0", "generator": generator},
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [root] + nodes,
+    }
+    if quads:
+        gltf.update({
+            "extensionsUsed": ["KHR_materials_unlit"],
+            "meshes": meshes, "materials": materials, "textures": textures, "images": images,
+            "samplers": [{"magFilter": 9729, "minFilter": 9729, "wrapS": 33071, "wrapT": 33071}],
+            "accessors": accessors, "bufferViews": buffer_views,
+            "buffers": [{"byteLength": len(blob)}],
+        })
+    json_chunk = _pad4(json.dumps(gltf, separators=(",", ":")).encode("utf-8"), b" ")
+    chunks = struct.pack("<II", len(json_chunk), GLB_CHUNK_JSON) + json_chunk
+    if blob:
+        chunks += struct.pack("<II", len(blob), GLB_CHUNK_BIN) + bytes(blob)
+    return struct.pack("<III", GLB_MAGIC, 2, 12 + len(chunks)) + chunks
+
+
+def write_glb(path: str | Path, quads: list[TexturedQuad], **options: Any) -> Path:
+    """Write textured quads as a glTF 2.0 binary file (see `encode_glb`), atomically."""
+    return write_bytes_atomic(path, encode_glb(quads, **options))
+
+
+def read_glb(path: str | Path) -> tuple[dict[str, Any], bytes]:
+    """Parse a GLB file: (the glTF JSON, the BIN chunk); checks the header, chunk types and lengths."""
+    data = Path(path).read_bytes()
+    if len(data) < 20:
+        raise ValueError(f"{path}: {len(data)} bytes is too short for a GLB file")
+    magic, version, length = struct.unpack_from("<III", data, 0)
+    if magic != GLB_MAGIC or version != 2:
+        raise ValueError(f"{path}: not a glTF 2.0 binary (magic {magic:#x}, version {version})")
+    if length != len(data):
+        raise ValueError(f"{path}: header says {length} bytes, file has {len(data)}")
+    json_length, json_type = struct.unpack_from("<II", data, 12)
+    if json_type != GLB_CHUNK_JSON or json_length % 4:
+        raise ValueError(f"{path}: first chunk must be JSON with a length multiple of 4")
+    gltf = json.loads(data[20:20 + json_length].decode("utf-8"))
+    offset = 20 + json_length
+    binary = b""
+    if offset < len(data):
+        bin_length, bin_type = struct.unpack_from("<II", data, offset)
+        if bin_type != GLB_CHUNK_BIN or offset + 8 + bin_length != len(data):
+            raise ValueError(f"{path}: second chunk must be BIN and end the file")
+        binary = data[offset + 8:]
+    return gltf, binary
+
+
+def glb_accessor(gltf: dict[str, Any], binary: bytes, index: int) -> np.ndarray:
+    """The array behind accessor `index` (tightly packed views only), shaped (count, components)."""
+    acc = gltf["accessors"][index]
+    buffer_view = gltf["bufferViews"][acc["bufferView"]]
+    dtype = np.dtype(_COMPONENT_DTYPES[acc["componentType"]])
+    components = _COMPONENTS[acc["type"]]
+    start = buffer_view.get("byteOffset", 0) + acc.get("byteOffset", 0)
+    size = acc["count"] * components * dtype.itemsize
+    if start + size > buffer_view.get("byteOffset", 0) + buffer_view["byteLength"] or start + size > len(binary):
+        raise ValueError(f"accessor {index} reaches past its buffer view")
+    return np.frombuffer(binary, dtype=dtype, count=acc["count"] * components, offset=start).reshape(-1, components)
+
+
+def glb_image(gltf: dict[str, Any], binary: bytes, index: int) -> bytes:
+    """The encoded bytes of image `index` (stored in a buffer view)."""
+    buffer_view = gltf["bufferViews"][gltf["images"][index]["bufferView"]]
+    start = buffer_view.get("byteOffset", 0)
+    return binary[start:start + buffer_view["byteLength"]]

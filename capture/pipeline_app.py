@@ -1,0 +1,469 @@
+"""One photograph in, one finished output folder out: read the file, run the depth pipeline, write every output.
+
+`process_file` is the unit of work of `mca process`, of the local process pool and of a
+Dask cluster alike: it takes only picklable arguments, writes under `out_root/<stem>/`
+and never raises for a bad input file (it returns a failed `FileOutcome` naming the file).
+A folder counts as finished when its `result.json` exists; that file is written last.
+What each output holds is described in docs/outputs.md.
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import datetime as _dt
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from capture import outputs
+from capture.raw import IMAGE_EXTENSIONS, RAW_EXTENSIONS, RawFrame, read_raw
+from processing.camera import CameraProfile
+from processing.result import DepthResult
+
+SUPPORTED_SUFFIXES = frozenset(RAW_EXTENSIONS) | frozenset(IMAGE_EXTENSIONS)   # what `read_raw` reads
+RESULT_NAME = "result.json"
+RECORDING_NAME = "recording.rrd"
+MAX_PLY_POINTS = 1_000_000
+LAYER_ORDER = "front-to-back"      # layers/00.png is the nearest plane
+
+PipelineFunction = Callable[..., DepthResult]
+
+
+@dataclass
+class FileOutcome:
+    """What became of one input file."""
+
+    input_path: Path
+    status: str                          # "done", "skipped" (already finished) or "failed"
+    output_dir: Path
+    seconds: float = 0.0
+    reason: str | None = None            # why it failed or was skipped
+    regions: int | None = None           # number of regions found, when done
+
+
+@dataclass
+class LoadedInput:
+    """An input file ready for the pipeline."""
+
+    frame: RawFrame                      # what the recorder logs
+    planes: np.ndarray                   # (H, W, 3) float32 linear RGB at processing resolution
+    pixel_scale: float                   # input-image pixels per processing pixel
+    input_size_px: tuple[int, int]       # (width, height) of the input image
+    pixel_pitch_mm: float | None         # pitch of one input-image pixel, when known
+    metadata: dict[str, Any]
+
+
+# --- reading --------------------------------------------------------------------------------------------------------
+
+
+DOWNSCALED_RAW_RATIO = 1.5   # a raw this much narrower than its body's active area is a downscaled one
+
+
+def input_pixel_pitch_mm(frame: RawFrame, input_width_px: int) -> float | None:
+    """Pitch of one input-image pixel on the sensor, when the file says which body took it.
+
+    A raw carries its body's photosite pitch; but a raw far narrower than that body's sensor
+    (Canon mRAW/sRAW, the simulator's `--size small`) spans the same sensor with fewer, larger
+    pixels, so its pitch is the sensor width over its width, as for RGB images.
+    """
+    scale = 2.0 if frame.half_resolution else 1.0
+    pitch = frame.pixel_pitch_mm / scale if frame.pixel_pitch_mm else None
+    if frame.half_resolution and pitch is not None:
+        from capture.sensors import sensor_for
+
+        spec = sensor_for(frame.metadata.model, frame.metadata.make)
+        if spec is not None and spec.width_px >= DOWNSCALED_RAW_RATIO * input_width_px:
+            pitch = spec.width_mm / input_width_px
+    return pitch
+
+
+def read_input(path: Path) -> LoadedInput:
+    """Read any photograph `read_raw` reads; Bayer raws give half-resolution planes (pixel_scale 2).
+
+    Raises `capture.raw.RawReadError` naming the file when it cannot be read.
+    """
+    frame = read_raw(path)
+    planes = np.asarray(frame.planes, dtype=np.float32)
+    height, width = planes.shape[:2]
+    scale = 2.0 if frame.half_resolution else 1.0
+    size = (int(round(width * scale)), int(round(height * scale)))
+    return LoadedInput(frame=frame, planes=planes, pixel_scale=scale, input_size_px=size,
+                       pixel_pitch_mm=input_pixel_pitch_mm(frame, size[0]),
+                       metadata=dataclasses.asdict(frame.metadata))
+
+
+def bayer_channel_offsets_px(cfa_pattern: str | None) -> tuple[tuple[float, float], ...] | None:
+    """(dx, dy) of the R, G, B samples from the centre of their 2x2 block, in half-resolution pixels.
+
+    `cfa_pattern` names the colours of the top-left 2x2 row by row ("RGGB" gives red at (-0.25, -0.25),
+    the mean of the greens at the centre, blue at (+0.25, +0.25)); None when it is not a Bayer pattern.
+    """
+    if not cfa_pattern or sorted(cfa_pattern.upper()) != ["B", "G", "G", "R"]:
+        return None
+    sites: dict[str, list[tuple[int, int]]] = {"R": [], "G": [], "B": []}
+    for index, letter in enumerate(cfa_pattern.upper()):
+        sites[letter].append((index % 2, index // 2))
+    return tuple((float(np.mean([x for x, _ in sites[c]]) - 0.5) / 2.0,
+                  float(np.mean([y for _, y in sites[c]]) - 0.5) / 2.0) for c in "RGB")
+
+
+def upsample_nearest(array: np.ndarray, pixel_scale: float, size_px: tuple[int, int]) -> np.ndarray:
+    """Nearest-neighbour resampling of a processing-resolution map to the input size (width, height)."""
+    height, width = array.shape[:2]
+    rows = np.minimum(((np.arange(size_px[1]) + 0.5) / pixel_scale).astype(np.intp), height - 1)
+    cols = np.minimum(((np.arange(size_px[0]) + 0.5) / pixel_scale).astype(np.intp), width - 1)
+    return array[rows[:, None], cols[None, :]]
+
+
+@dataclass(frozen=True)
+class Pinhole:
+    """Back-projection of input-image pixels: x = (u - cx) * pitch * Z / d_ls (camera frame, x right, y down, mm)."""
+
+    pixel_pitch_mm: float          # pitch of one input-image pixel
+    sensor_distance_mm: float      # the paper's d_ls
+    width_px: int
+    height_px: int
+
+    @property
+    def centre_px(self) -> tuple[float, float]:
+        """Principal point: the image centre, in pixel-centre coordinates."""
+        return ((self.width_px - 1) / 2.0, (self.height_px - 1) / 2.0)
+
+    def back_project(self, u_px: np.ndarray, v_px: np.ndarray, z_mm: np.ndarray) -> np.ndarray:
+        """(N, 3) camera-frame points in mm for pixel coordinates and distances along the optical axis."""
+        cx, cy = self.centre_px
+        scale = self.pixel_pitch_mm / self.sensor_distance_mm
+        return np.stack([(u_px - cx) * scale * z_mm, (v_px - cy) * scale * z_mm, z_mm], axis=-1)
+
+
+def scene_points(depth_mm: np.ndarray, colours_rgb8: np.ndarray, pixel_scale: float, camera: Pinhole,
+                 max_points: int = MAX_PLY_POINTS) -> tuple[np.ndarray, np.ndarray]:
+    """Coloured camera-frame points of every known-depth pixel, on a regular stride so at most `max_points`."""
+    valid = np.isfinite(depth_mm) & (depth_mm > 0)
+    stride = max(1, math.ceil(math.sqrt(int(valid.sum()) / max_points)))
+    while int(valid[::stride, ::stride].sum()) > max_points:
+        stride += 1
+    sub = valid[::stride, ::stride]
+    rows, cols = np.nonzero(sub)
+    rows, cols = rows * stride, cols * stride
+    u = (cols + 0.5) * pixel_scale - 0.5                 # pixel centres in input-image coordinates
+    v = (rows + 0.5) * pixel_scale - 0.5
+    points = camera.back_project(u, v, depth_mm[rows, cols].astype(np.float64))
+    return points.astype(np.float32), colours_rgb8[rows, cols]
+
+
+def _layer_rgba8(rgba: np.ndarray) -> np.ndarray:
+    """A float RGBA layer (linear RGB, alpha in [0, 1]) as 8-bit sRGB with 8-bit alpha."""
+    alpha = np.round(np.clip(np.nan_to_num(rgba[..., 3]), 0.0, 1.0) * 255.0).astype(np.uint8)
+    return np.dstack([outputs.linear_to_srgb8(rgba[..., :3]), alpha])
+
+
+def region_quads(result: DepthResult, layers_rgba8: dict[int, np.ndarray], all_in_focus8: np.ndarray,
+                 camera: Pinhole) -> list[outputs.TexturedQuad]:
+    """One quad per region with a distance, front to back: its bounding box back-projected at its distance."""
+    from scipy import ndimage
+
+    labels = np.asarray(result.labels)
+    boxes = ndimage.find_objects(labels.astype(np.int32))       # one pass: boxes[id - 1] bounds region id
+    quads = []
+    for region in sorted(result.regions, key=lambda r: r.order):
+        z = region.distance_mm
+        box = boxes[region.id - 1] if 0 < region.id <= len(boxes) else None
+        if z is None or not math.isfinite(z) or z <= 0 or box is None:
+            continue
+        (r0, r1), (c0, c1) = (box[0].start, box[0].stop), (box[1].start, box[1].stop)
+        rgba = layers_rgba8.get(region.id)
+        if rgba is None:
+            crop = (labels[box] == region.id).astype(np.uint8) * 255
+            texture = outputs.encode_png(np.dstack([all_in_focus8[box], crop]))
+        else:
+            texture = outputs.encode_png(np.ascontiguousarray(rgba[box]))
+        # pixel edges in input-image coordinates; the centre of pixel u sits at edge u + 0.5
+        left, right = c0 * result.pixel_scale - 0.5, c1 * result.pixel_scale - 0.5
+        top, bottom = r0 * result.pixel_scale - 0.5, r1 * result.pixel_scale - 0.5
+        u = np.array([left, right, right, left])
+        v = np.array([top, top, bottom, bottom])
+        corners = camera.back_project(u, v, np.full(4, float(z)))
+        quads.append(outputs.TexturedQuad(name=f"region {region.id}", corners_mm=corners, texture_png=texture,
+                                          extras={"region_id": region.id, "order": region.order,
+                                                  "distance_mm": float(z)}))
+    return quads
+
+
+# --- writing --------------------------------------------------------------------------------------------------------
+
+
+def _number(value: Any) -> float | None:
+    if value is None:
+        return None
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def _capture_time(metadata: dict[str, Any]) -> _dt.datetime | None:
+    value = metadata.get("capture_time")
+    return value if isinstance(value, _dt.datetime) else None
+
+
+def _clean_folder(out_dir: Path) -> None:
+    """Remove what a killed or previous run left that this run might not overwrite."""
+    for folder in (out_dir, out_dir / "layers"):
+        if not folder.is_dir():
+            continue
+        for entry in folder.iterdir():
+            if entry.name.startswith(".") and entry.name.endswith(outputs.TEMP_SUFFIX):
+                entry.unlink(missing_ok=True)
+            elif folder.name == "layers" and entry.suffix == ".png":
+                entry.unlink(missing_ok=True)
+    for name in ("depth.tiff", "disparity.tiff", "regions.png", "all_in_focus.png", "scene.ply", "scene.glb"):
+        (out_dir / name).unlink(missing_ok=True)
+
+
+def write_outputs(out_dir: Path, result: DepthResult, loaded: LoadedInput, labels_input: np.ndarray,
+                  camera: Pinhole | None) -> list[str]:
+    """Write every output except result.json; returns their names relative to `out_dir`.
+
+    `labels_input` is the region map at input resolution; `camera` is None in disparity-only mode.
+    """
+    size = loaded.input_size_px
+    scale = result.pixel_scale
+    written: list[str] = []
+
+    def done(path: Path) -> None:
+        written.append(path.relative_to(out_dir).as_posix())
+
+    if result.depth_mm is not None and camera is not None:
+        depth = np.asarray(result.depth_mm, dtype=np.float32)
+    else:
+        depth = np.full(result.labels.shape, np.nan, dtype=np.float32)
+        done(outputs.write_tiff_float32(out_dir / "disparity.tiff",
+                                        upsample_nearest(np.asarray(result.disparity_px, np.float32), scale, size)))
+    done(outputs.write_tiff_float32(out_dir / "depth.tiff", upsample_nearest(depth, scale, size)))
+    done(outputs.write_png(out_dir / "regions.png", labels_input.astype(np.uint16)))
+    all_in_focus8 = outputs.linear_to_srgb8(result.all_in_focus)
+    done(outputs.write_png(out_dir / "all_in_focus.png", all_in_focus8))
+
+    layers_rgba8: dict[int, np.ndarray] = {}
+    for index, layer in enumerate(ordered_layers(result)):
+        rgba8 = _layer_rgba8(np.asarray(layer.rgba))
+        layers_rgba8.setdefault(layer.region_id, rgba8)
+        done(outputs.write_png(out_dir / "layers" / f"{index:02d}.png", rgba8))
+
+    if camera is not None and result.depth_mm is not None:
+        points, colours = scene_points(depth, all_in_focus8, scale, camera)
+        done(outputs.write_ply(out_dir / "scene.ply", points, colours, comments=(
+            "mca-appliance scene: camera frame, x right, y down, z along the optical axis, millimetres",)))
+        done(outputs.write_glb(out_dir / "scene.glb", region_quads(result, layers_rgba8, all_in_focus8, camera)))
+    return written
+
+
+def ordered_layers(result: DepthResult) -> list:
+    """The multi-plane images front to back: by their region's occlusion order, then by disparity."""
+    order = {region.id: region.order for region in result.regions}
+    return sorted(result.layers, key=lambda layer: (order.get(layer.region_id, len(order)), layer.disparity_px))
+
+
+def result_document(input_path: Path, profile: CameraProfile, result: DepthResult, loaded: LoadedInput,
+                    labels_input: np.ndarray, optics: Any, written: list[str],
+                    timings_s: dict[str, float]) -> dict[str, Any]:
+    """The content of result.json (see docs/outputs.md); region pixels are counted at input resolution."""
+    counts = np.bincount(labels_input.ravel().astype(np.intp),
+                         minlength=max([r.id for r in result.regions], default=0) + 1)
+    layer_names = {layer.region_id: f"layers/{i:02d}.png" for i, layer in reversed(list(enumerate(
+        ordered_layers(result))))}
+    regions = []
+    for region in sorted(result.regions, key=lambda r: r.id):
+        regions.append({
+            "id": int(region.id),
+            "pixels": int(counts[region.id]),
+            "order": int(region.order),
+            "occludes": [int(i) for i in region.occludes],
+            "disparity_px": _number(region.disparity_px),
+            "inter_image_depth_mm": _number(region.inter_image_depth_mm),
+            "inter_object_depth_mm": _number(region.inter_object_depth_mm),
+            "distance_mm": _number(region.distance_mm),
+            "slant": None if region.slant is None else {"plane": [float(v) for v in region.slant]},
+            "in_focus": bool(region.in_focus),
+            "confidence": _number(region.confidence),
+            "layer": layer_names.get(region.id),
+        })
+    mode = "distance" if optics is not None and result.depth_mm is not None else "disparity-only"
+    return {
+        "input": str(input_path),
+        "profile": profile.name,
+        "focus_region": None if result.focus_region is None else int(result.focus_region),
+        "regions": regions,
+        "timings_s": {k: round(float(v), 6) for k, v in timings_s.items()},
+        "status": "done",
+        "mode": mode,
+        "units": {"depth.tiff": "mm from the lens along the optical axis, NaN unknown"
+                  + (" (all NaN: no lens data)" if mode == "disparity-only" else ""),
+                  "disparity_px": "input-image pixels between the widest filter pair, + = farther than focus",
+                  "distance_mm": "mm from the lens", "inter_image_depth_mm": "mm, image side (eq. 2)",
+                  "inter_object_depth_mm": "mm from the focus plane, object side (eqs. 13/14)",
+                  "scene": "camera frame, x right, y down, z forward, mm"},
+        "input_size_px": list(loaded.input_size_px),
+        "processing_size_px": [int(result.labels.shape[1]), int(result.labels.shape[0])],
+        "pixel_scale": float(result.pixel_scale),
+        "pixel_pitch_mm": None if optics is None else float(optics.pixel_pitch_mm),
+        "optics": None if optics is None else {
+            "focal_length_mm": float(optics.focal_length_mm), "sensor_distance_mm": float(optics.sensor_distance_mm),
+            "filter_centre_distance_mm": float(optics.filter_centre_distance_mm),
+            "focus_distance_mm": float(optics.focus_distance_mm)},
+        "layers_order": LAYER_ORDER,
+        "capture": outputs.json_safe(loaded.metadata),
+        "outputs": written + [RESULT_NAME],
+    }
+
+
+# --- the unit of work -----------------------------------------------------------------------------------------------
+
+
+def _optics_for(profile: CameraProfile, loaded: LoadedInput):
+    """MCAOptics in input-image pixels, or None when the profile has no lens data (disparity-only results)."""
+    if profile.lens is None:
+        return None
+    pitch = loaded.pixel_pitch_mm or profile.pixel_pitch_mm
+    if pitch is None:
+        return None
+    from processing.optics import MCAOptics
+
+    return MCAOptics.from_profile(profile, pixel_pitch_mm=pitch)
+
+
+def _default_pipeline() -> PipelineFunction:
+    from processing.pipeline import run_pipeline
+
+    return run_pipeline
+
+
+StageCallback = Callable[[str], None]
+# What a file goes through, in order: the pipeline's stages (processing/pipeline.py) between reading and writing.
+STAGES = ("read", "planes", "disparity", "sketch", "refine", "depth", "all_in_focus", "mpi", "write")
+
+
+def _announce(on_stage: StageCallback | None, stage: str) -> None:
+    """Tell a progress display that `stage` finished; a broken display never fails a file."""
+    if on_stage is not None:
+        with contextlib.suppress(Exception):
+            on_stage(stage)
+
+
+class _StageTimer:
+    """Forwards to a recorder, remembers each stage's timing and announces it to a progress display."""
+
+    def __init__(self, inner: Any = None, on_stage: StageCallback | None = None) -> None:
+        self.inner = inner
+        self.on_stage = on_stage
+        self.timings_s: dict[str, float] = {}
+
+    def record(self, stage: str, **items: Any) -> None:
+        if self.inner is not None:
+            self.inner.record(stage, **items)
+
+    def timing(self, stage: str, seconds: float) -> None:
+        self.timings_s[stage] = float(seconds)
+        if stage in STAGES:
+            _announce(self.on_stage, stage)
+        if self.inner is not None:
+            self.inner.timing(stage, seconds)
+
+
+def output_dir_for(input_path: Path, out_root: Path, out_name: str | None = None) -> Path:
+    return Path(out_root) / (out_name or Path(input_path).stem)
+
+
+def is_finished(out_dir: Path) -> bool:
+    """An output folder is finished when its result.json exists (it is written last)."""
+    return (out_dir / RESULT_NAME).is_file()
+
+
+def process_file(input_path: str | Path, out_root: str | Path, profile: CameraProfile, *, force: bool = False,
+                 record_path: str | Path | None = None, out_name: str | None = None,
+                 pipeline: PipelineFunction | None = None, on_stage: StageCallback | None = None) -> FileOutcome:
+    """Process one photograph into `out_root/<stem>/` (or `out_root/<out_name>/`); never raises for a bad file.
+
+    Skips a finished folder unless `force`. With `record_path`, records the shot with the rerun
+    recorder into that .rrd file. `pipeline` replaces `processing.pipeline.run_pipeline` (tests);
+    `on_stage(name)` is called as each of `STAGES` finishes (progress displays).
+    """
+    started = time.perf_counter()
+    input_path = Path(input_path)
+    out_dir = output_dir_for(input_path, Path(out_root), out_name)
+    if is_finished(out_dir) and not force:
+        return FileOutcome(input_path, "skipped", out_dir, time.perf_counter() - started,
+                           reason="already finished (result.json exists); use --force to redo")
+    try:
+        regions = _process(input_path, out_dir, profile, record_path, pipeline, on_stage)
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except Exception as exc:  # one bad file must never stop a batch: report it, keep going
+        message = str(exc) or type(exc).__name__
+        if str(input_path) not in message:
+            message = f"{input_path}: {type(exc).__name__}: {message}"
+        return FileOutcome(input_path, "failed", out_dir, time.perf_counter() - started, reason=message)
+    return FileOutcome(input_path, "done", out_dir, time.perf_counter() - started, regions=regions)
+
+
+def _process(input_path: Path, out_dir: Path, profile: CameraProfile, record_path: str | Path | None,
+             pipeline: PipelineFunction | None, on_stage: StageCallback | None) -> int:
+    run = pipeline or _default_pipeline()
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    loaded = read_input(input_path)
+    timings["read"] = time.perf_counter() - t0
+    _announce(on_stage, "read")
+    optics = _optics_for(profile, loaded)
+
+    with contextlib.ExitStack() as stack:
+        recorder = None
+        if record_path is not None:
+            from capture.recording import RerunRecorder
+
+            Path(record_path).parent.mkdir(parents=True, exist_ok=True)
+            recorder = RerunRecorder(Path(record_path), application_id="mca")
+            stack.callback(recorder.close)
+            recorder.begin_shot(0, input_path.stem, _capture_time(loaded.metadata), profile)
+            recorder.log_input(loaded.frame)
+        timer = _StageTimer(recorder, on_stage)
+        t0 = time.perf_counter()
+        extra: dict[str, Any] = {}
+        if loaded.frame.half_resolution:
+            offsets = bayer_channel_offsets_px(loaded.metadata.get("cfa_pattern"))
+            if offsets is not None:      # Bayer sample positions are not disparity
+                extra["channel_offsets_px"] = offsets
+        result = run(loaded.planes, profile.aperture, optics, pixel_scale=loaded.pixel_scale, recorder=timer,
+                     **extra)
+        timings.update(timer.timings_s)
+        timings.update({k: float(v) for k, v in (result.timings_s or {}).items()})
+        timings["pipeline"] = time.perf_counter() - t0
+        if recorder is not None:
+            recorder.log_result(result, profile, optics)
+
+    if not math.isclose(result.pixel_scale, loaded.pixel_scale):
+        result = dataclasses.replace(result, pixel_scale=loaded.pixel_scale)
+    camera = None
+    if optics is not None:
+        camera = Pinhole(optics.pixel_pitch_mm, optics.sensor_distance_mm, *loaded.input_size_px)
+
+    t0 = time.perf_counter()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / RESULT_NAME).unlink(missing_ok=True)      # unfinished from here until the new one lands
+    _clean_folder(out_dir)
+    labels_input = upsample_nearest(np.asarray(result.labels), result.pixel_scale, loaded.input_size_px)
+    written = write_outputs(out_dir, result, loaded, labels_input, camera)
+    if record_path is not None and Path(record_path).parent == out_dir:
+        written.append(Path(record_path).name)
+    timings["write"] = time.perf_counter() - t0
+    _announce(on_stage, "write")
+    document = result_document(input_path, profile, result, loaded, labels_input, optics, written, timings)
+    outputs.write_json(out_dir / RESULT_NAME, document)
+    return len(result.regions)
+
+
+__all__ = ["FileOutcome", "LoadedInput", "Pinhole", "SUPPORTED_SUFFIXES", "is_finished",
+           "output_dir_for", "process_file", "read_input", "scene_points", "upsample_nearest"]

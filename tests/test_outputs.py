@@ -1,0 +1,168 @@
+"""The output writers: PLY and GLB parsed back, TIFF/PNG/JSON round trips, atomic writes leave nothing behind."""
+from __future__ import annotations
+
+import json
+import struct
+
+import cv2
+import numpy as np
+import pytest
+import tifffile
+
+from capture import outputs
+from capture.pipeline_app import Pinhole, scene_points, upsample_nearest
+
+
+def _leftovers(folder):
+    return [p.name for p in folder.rglob("*") if p.name.endswith(outputs.TEMP_SUFFIX)]
+
+
+def test_ply_round_trip(tmp_path):
+    rng = np.random.default_rng(1)
+    points = (rng.normal(size=(1000, 3)) * 100 + [0, 0, 1000]).astype(np.float32)
+    colours = rng.integers(0, 256, size=(1000, 3), dtype=np.uint8)
+    path = outputs.write_ply(tmp_path / "scene.ply", points, colours, comments=("camera frame, mm",))
+    header = path.read_bytes()[:300].split(b"end_header\n")[0].decode()
+    assert header.startswith("ply\nformat binary_little_endian 1.0\n")
+    assert "element vertex 1000" in header and "property uchar red" in header
+    vertices, comments = outputs.read_ply(path)
+    assert comments == ["camera frame, mm"]
+    np.testing.assert_array_equal(np.stack([vertices["x"], vertices["y"], vertices["z"]], axis=1), points)
+    np.testing.assert_array_equal(np.stack([vertices["red"], vertices["green"], vertices["blue"]], axis=1), colours)
+    # 3 floats + 3 bytes per vertex, nothing more
+    assert path.stat().st_size == len(header) + len("end_header\n") + 1000 * 15
+
+
+def test_ply_rejects_mismatched_colours(tmp_path):
+    with pytest.raises(ValueError, match="3 points but 2 colours"):
+        outputs.write_ply(tmp_path / "x.ply", np.zeros((3, 3)), np.zeros((2, 3)))
+    assert list(tmp_path.iterdir()) == []
+
+
+def _quad(name, z_mm, half_mm, colour):
+    texture = np.zeros((6, 8, 4), np.uint8)
+    texture[..., :3] = colour
+    texture[..., 3] = 255
+    corners = np.array([[-half_mm, -half_mm, z_mm], [half_mm, -half_mm, z_mm],
+                        [half_mm, half_mm, z_mm], [-half_mm, half_mm, z_mm]])
+    return outputs.TexturedQuad(name, corners, outputs.encode_png(texture), extras={"distance_mm": z_mm})
+
+
+def test_glb_parsed_back(tmp_path):
+    quads = [_quad("near", 950.0, 40.0, (255, 0, 0)), _quad("far", 1105.5, 80.0, (0, 0, 255))]
+    path = outputs.write_glb(tmp_path / "scene.glb", quads)
+    data = path.read_bytes()
+    magic, version, length = struct.unpack_from("<III", data)
+    assert (magic, version, length) == (0x46546C67, 2, len(data))
+    assert data[16:20] == b"JSON"
+    gltf, binary = outputs.read_glb(path)
+    assert gltf["asset"]["version"] == "2.0"
+    assert len(binary) == gltf["buffers"][0]["byteLength"] and len(binary) % 4 == 0
+    root = gltf["nodes"][gltf["scenes"][gltf["scene"]]["nodes"][0]]
+    assert root["matrix"][0] == pytest.approx(0.001) and root["matrix"][5] == pytest.approx(-0.001)
+    assert [gltf["nodes"][i]["name"] for i in root["children"]] == ["near", "far"]
+    for view in gltf["bufferViews"]:
+        assert view["byteOffset"] % 4 == 0 and view["byteOffset"] + view["byteLength"] <= len(binary)
+    for mesh_index, quad in enumerate(quads):
+        primitive = gltf["meshes"][mesh_index]["primitives"][0]
+        position = gltf["accessors"][primitive["attributes"]["POSITION"]]
+        values = outputs.glb_accessor(gltf, binary, primitive["attributes"]["POSITION"])
+        np.testing.assert_allclose(values, quad.corners_mm, rtol=1e-6)
+        assert position["min"] == pytest.approx(values.min(axis=0).tolist())
+        assert position["max"] == pytest.approx(values.max(axis=0).tolist())
+        indices = outputs.glb_accessor(gltf, binary, primitive["indices"]).ravel()
+        assert indices.max() < position["count"]
+        uv = outputs.glb_accessor(gltf, binary, primitive["attributes"]["TEXCOORD_0"])
+        assert uv.min() == 0.0 and uv.max() == 1.0
+        material = gltf["materials"][primitive["material"]]
+        image_index = gltf["textures"][material["pbrMetallicRoughness"]["baseColorTexture"]["index"]]["source"]
+        png = outputs.glb_image(gltf, binary, image_index)
+        assert png == quad.texture_png
+        decoded = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)
+        assert decoded.shape == (6, 8, 4)
+    assert gltf["nodes"][2]["extras"] == {"distance_mm": 1105.5}
+
+
+def test_glb_without_quads_is_valid(tmp_path):
+    gltf, binary = outputs.read_glb(outputs.write_glb(tmp_path / "empty.glb", []))
+    assert binary == b"" and gltf["scenes"] == [{"nodes": [0]}]
+
+
+def test_glb_quad_faces_the_camera():
+    # after the root transform (y up, z toward the viewer) the triangles wind counter-clockwise
+    data = outputs.encode_glb([_quad("q", 1000.0, 10.0, (1, 2, 3))])
+    length = struct.unpack_from("<I", data, 12)[0]
+    gltf = json.loads(data[20:20 + length])
+    binary = data[20 + length + 8:]
+    corners = outputs.glb_accessor(gltf, binary, 0).astype(float)
+    world = corners * [1, -1, -1]
+    tri = world[outputs.glb_accessor(gltf, binary, 2).ravel()[:3]]
+    normal = np.cross(tri[1] - tri[0], tri[2] - tri[0])
+    assert normal[2] > 0
+
+
+def test_tiff_png_json_round_trip(tmp_path):
+    depth = np.array([[1000.5, np.nan], [np.inf, 2.0]], np.float32)
+    outputs.write_tiff_float32(tmp_path / "depth.tiff", depth)
+    back = tifffile.imread(tmp_path / "depth.tiff")
+    assert back.dtype == np.float32
+    np.testing.assert_array_equal(back, depth)
+    labels = np.array([[0, 1], [300, 65535]], np.uint16)
+    outputs.write_png(tmp_path / "labels.png", labels)
+    read = cv2.imread(str(tmp_path / "labels.png"), cv2.IMREAD_UNCHANGED)
+    assert read.dtype == np.uint16
+    np.testing.assert_array_equal(read, labels)
+    rgba = np.zeros((2, 3, 4), np.uint8)
+    rgba[..., 0] = 200
+    rgba[..., 3] = 128
+    outputs.write_png(tmp_path / "layer.png", rgba)
+    bgra = cv2.imread(str(tmp_path / "layer.png"), cv2.IMREAD_UNCHANGED)
+    assert bgra[0, 0].tolist() == [0, 0, 200, 128]
+    outputs.write_json(tmp_path / "r.json", {"a": float("nan"), "b": np.float32(1.5), "c": (1, 2), "d": np.arange(2)})
+    assert json.loads((tmp_path / "r.json").read_text()) == {"a": None, "b": 1.5, "c": [1, 2], "d": [0, 1]}
+    assert _leftovers(tmp_path) == []
+
+
+def test_srgb_curve():
+    assert outputs.linear_to_srgb8(np.array([0.0, 0.0031308, 0.2159, 1.0, 2.0])).tolist() == [0, 10, 128, 255, 255]
+    np.testing.assert_allclose(outputs.srgb_to_linear(np.array([0.5])), [0.214041], rtol=1e-5)
+
+
+def test_failed_write_leaves_no_temporary_file_and_keeps_the_old_one(tmp_path, monkeypatch):
+    target = tmp_path / "result.json"
+    outputs.write_json(target, {"version": 1})
+    with pytest.raises(RuntimeError, match="disk full"):
+        with outputs.atomic_path(target) as tmp:
+            tmp.write_text("half a fi")
+            raise RuntimeError("disk full")
+    assert json.loads(target.read_text()) == {"version": 1}
+    with pytest.raises(TypeError):
+        outputs.write_png(tmp_path / "bad.png", np.zeros((2, 2), np.float64))
+    with pytest.raises(ValueError):
+        outputs.write_tiff_float32(tmp_path / "bad.tiff", np.zeros((2, 2, 2)))
+    def no_space(fd):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(outputs.os, "fsync", no_space)
+    with pytest.raises(OSError, match="No space"):
+        outputs.write_json(target, {"version": 2})
+    with pytest.raises(OSError, match="No space"):
+        outputs.write_glb(tmp_path / "scene.glb", [])
+    assert json.loads(target.read_text()) == {"version": 1}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["result.json"]
+
+
+def test_upsample_and_back_projection():
+    labels = np.array([[1, 2], [3, 4]], np.uint16)
+    up = upsample_nearest(labels, 2.0, (5, 3))    # odd input size: the last row/column repeats
+    assert up.tolist() == [[1, 1, 2, 2, 2], [1, 1, 2, 2, 2], [3, 3, 4, 4, 4]]
+    camera = Pinhole(pixel_pitch_mm=0.004, sensor_distance_mm=52.63, width_px=101, height_px=51)
+    point = camera.back_project(np.array([100.0]), np.array([0.0]), np.array([1000.0]))[0]
+    # 50 px right of the centre at 4 um: 0.2 mm on the sensor, times Z / d_ls
+    assert point == pytest.approx([0.2 * 1000 / 52.63, -0.1 * 1000 / 52.63, 1000.0])
+    depth = np.full((40, 60), 1000.0, np.float32)
+    depth[:5] = np.nan
+    colours = np.zeros((40, 60, 3), np.uint8)
+    points, rgb = scene_points(depth, colours, 1.0, Pinhole(0.004, 52.63, 60, 40), max_points=500)
+    assert 0 < len(points) <= 500 and len(rgb) == len(points)
+    assert np.all(points[:, 2] == 1000.0)

@@ -1,0 +1,285 @@
+"""`mca process` and `process_file`: CR2, TIFF and PNG to the full set of outputs, bad files, resume and --force."""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import tifffile
+from typer.testing import CliRunner
+
+from capture import outputs
+from capture.batch import run_batch
+from capture.cli import app
+from capture.cr2 import Cr2Metadata, write_cr2
+from capture.pipeline_app import RESULT_NAME, process_file
+from capture.profiles import load_profile
+from processing.result import DepthResult, MultiPlaneImage, Region
+
+FULL_SET = {"depth.tiff", "regions.png", "result.json", "all_in_focus.png", "layers/00.png", "layers/01.png",
+            "scene.ply", "scene.glb"}
+
+
+def fake_pipeline(planes, aperture, optics, *, pixel_scale=1.0, recorder=None, **options) -> DepthResult:
+    """A stand-in for processing.pipeline.run_pipeline: two regions, the left one (at 950 mm) in front of the right
+    one (at 1100 mm); without optics -4 and +6 px."""
+    if not np.isfinite(planes).all() or planes.max() <= 0:
+        raise ValueError("nothing to see: the planes are black")
+    height, width = planes.shape[:2]
+    labels = np.ones((height, width), np.uint16)
+    labels[:, width // 2:] = 2
+    near, far = (-4.0, 6.0) if optics is None else (float(optics.disparity_px_at_distance(950.0)),
+                                                     float(optics.disparity_px_at_distance(1100.0)))
+    disparity = np.where(labels == 1, near, far).astype(np.float32)
+    regions = []
+    for rid, d, order, occludes in ((1, near, 0, [2]), (2, far, 1, [])):
+        region = Region(id=rid, pixels=int((labels == rid).sum()), order=order, occludes=occludes, disparity_px=d,
+                        in_focus=False, confidence=0.9, slant=(0.001, 0.0, d) if rid == 2 else None)
+        if optics is not None:
+            estimate = optics.from_disparity(d)
+            region.inter_image_depth_mm = estimate.inter_image_depth_mm
+            region.inter_object_depth_mm = estimate.inter_object_depth_mm
+            region.distance_mm = estimate.distance_mm
+        regions.append(region)
+    depth = None if optics is None else optics.distance_mm(disparity).astype(np.float32)
+    layers = []
+    for region in reversed(regions):     # deliberately back to front: the application orders them
+        rgba = np.dstack([planes, (labels == region.id).astype(np.float32)])
+        layers.append(MultiPlaneImage(region.id, rgba.astype(np.float32), region.inter_image_depth_mm,
+                                      region.inter_object_depth_mm, region.disparity_px))
+    if recorder is not None:
+        recorder.record("disparity", disparity_px=disparity)
+        recorder.timing("disparity", 0.001)
+    return DepthResult(labels=labels, disparity_px=disparity, raw_disparity_px=disparity,
+                       confidence=np.full((height, width), 0.9, np.float32), depth_mm=depth,
+                       all_in_focus=planes.astype(np.float32), regions=regions, focus_region=None, layers=layers,
+                       pixel_scale=pixel_scale, timings_s={"sketch": 0.002})
+
+
+def _pattern(height: int, width: int) -> np.ndarray:
+    y, x = np.mgrid[0:height, 0:width]
+    return np.dstack([0.2 + 0.6 * (x / width), 0.3 + 0.4 * (y / height), 0.5 + 0.3 * ((x + y) % 7 == 0)])
+
+
+def make_png(path: Path, height: int = 48, width: int = 64) -> Path:
+    cv2.imwrite(str(path), (outputs.linear_to_srgb8(_pattern(height, width)))[..., ::-1].copy())
+    return path
+
+
+def make_tiff(path: Path, height: int = 40, width: int = 56) -> Path:
+    tifffile.imwrite(path, np.round(_pattern(height, width) * 65535).astype(np.uint16), photometric="rgb")
+    return path
+
+
+def make_cr2(path: Path, height: int = 64, width: int = 96) -> Path:
+    rgb = _pattern(height // 2, width // 2)
+    mosaic = np.zeros((height, width), np.uint16)
+    scale = lambda c: (2048 + c * (15000 - 2048)).astype(np.uint16)   # noqa: E731
+    mosaic[0::2, 0::2] = scale(rgb[..., 0])
+    mosaic[0::2, 1::2] = scale(rgb[..., 1])
+    mosaic[1::2, 0::2] = scale(rgb[..., 1])
+    mosaic[1::2, 1::2] = scale(rgb[..., 2])
+    return write_cr2(path, mosaic, metadata=Cr2Metadata(), preview=False)
+
+
+def files_under(folder: Path) -> set[str]:
+    return {p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def profile():
+    return load_profile("paper-70d")
+
+
+# --- process_file with the stand-in pipeline -------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("maker, size", [(make_png, (64, 48)), (make_tiff, (56, 40)), (make_cr2, (96, 64))])
+def test_process_file_writes_the_full_set(tmp_path, profile, maker, size):
+    source = maker(tmp_path / f"shot{ {make_png: '.png', make_tiff: '.tiff', make_cr2: '.CR2'}[maker]}")
+    outcome = process_file(source, tmp_path / "out", profile, pipeline=fake_pipeline)
+    assert outcome.status == "done", outcome.reason
+    folder = tmp_path / "out" / "shot"
+    assert outcome.output_dir == folder and outcome.regions == 2
+    assert files_under(folder) == FULL_SET
+    width, height = size
+    depth = tifffile.imread(folder / "depth.tiff")
+    assert depth.dtype == np.float32 and depth.shape == (height, width)
+    labels = cv2.imread(str(folder / "regions.png"), cv2.IMREAD_UNCHANGED)
+    assert labels.dtype == np.uint16 and labels.shape == (height, width)
+    assert set(np.unique(labels)) == {1, 2}
+    result = json.loads((folder / RESULT_NAME).read_text())
+    assert result["input"] == str(source) and result["profile"] == "paper-70d"
+    assert result["input_size_px"] == [width, height] and result["mode"] == "distance"
+    by_id = {r["id"]: r for r in result["regions"]}
+    assert set(by_id[1]) >= {"id", "pixels", "order", "occludes", "disparity_px", "inter_image_depth_mm",
+                             "inter_object_depth_mm", "distance_mm", "slant"}
+    assert by_id[1]["pixels"] + by_id[2]["pixels"] == width * height
+    assert by_id[1]["order"] == 0 and by_id[1]["occludes"] == [2] and by_id[1]["slant"] is None
+    assert by_id[2]["slant"] == {"plane": [0.001, 0.0, pytest.approx(by_id[2]["disparity_px"])]}
+    assert by_id[1]["distance_mm"] == pytest.approx(950.0, abs=0.5)   # eqs. 2, 13/14 vs the exact thin lens
+    assert by_id[2]["distance_mm"] == pytest.approx(1100.0, abs=2.0)
+    # the depth map holds each region's distance at input resolution
+    assert np.allclose(depth[labels == 1], by_id[1]["distance_mm"])
+    assert np.allclose(depth[labels == 2], by_id[2]["distance_mm"])
+    assert by_id[1]["distance_mm"] < result["optics"]["focus_distance_mm"] < by_id[2]["distance_mm"]
+    assert {"read", "disparity", "sketch", "pipeline", "write"} <= set(result["timings_s"])
+    assert result["layers_order"] == "front-to-back" and by_id[1]["layer"] == "layers/00.png"
+    nearest = cv2.imread(str(folder / "layers" / "00.png"), cv2.IMREAD_UNCHANGED)
+    assert nearest.shape[2] == 4 and nearest[0, 0, 3] == 255 and nearest[0, -1, 3] == 0
+    # every point of the cloud lies at one of the two region distances, in front of the camera
+    vertices, _ = outputs.read_ply(folder / "scene.ply")
+    assert len(vertices) > 0
+    assert np.allclose(np.sort(np.unique(np.round(vertices["z"], 2))),
+                       np.round([by_id[1]["distance_mm"], by_id[2]["distance_mm"]], 2), atol=0.01)
+    gltf, binary = outputs.read_glb(folder / "scene.glb")
+    assert len(gltf["meshes"]) == 2
+    z = [float(outputs.glb_accessor(gltf, binary, m["primitives"][0]["attributes"]["POSITION"])[0, 2])
+         for m in gltf["meshes"]]
+    assert z == pytest.approx([by_id[1]["distance_mm"], by_id[2]["distance_mm"]], rel=1e-6)
+
+
+def test_process_file_disparity_only(tmp_path, profile):
+    import dataclasses
+
+    no_lens = dataclasses.replace(profile, lens=None, name="none")
+    outcome = process_file(make_png(tmp_path / "a.png"), tmp_path / "out", no_lens, pipeline=fake_pipeline)
+    assert outcome.status == "done", outcome.reason
+    folder = tmp_path / "out" / "a"
+    assert files_under(folder) == {"depth.tiff", "disparity.tiff", "regions.png", "result.json", "all_in_focus.png",
+                                   "layers/00.png", "layers/01.png"}
+    assert np.isnan(tifffile.imread(folder / "depth.tiff")).all()
+    disparity = tifffile.imread(folder / "disparity.tiff")
+    assert disparity.shape == (48, 64) and set(np.unique(disparity)) == {-4.0, 6.0}
+    result = json.loads((folder / RESULT_NAME).read_text())
+    assert result["mode"] == "disparity-only" and result["optics"] is None
+    assert all(r["distance_mm"] is None for r in result["regions"])
+
+
+def test_process_file_never_raises_for_a_bad_file(tmp_path, profile):
+    (tmp_path / "empty.CR2").write_bytes(b"")
+    (tmp_path / "text.png").write_text("not an image")
+    black = tmp_path / "black.png"
+    cv2.imwrite(str(black), np.zeros((30, 30, 3), np.uint8))
+    for path in (tmp_path / "empty.CR2", tmp_path / "text.png", tmp_path / "missing.tiff", black):
+        outcome = process_file(path, tmp_path / "out", profile, pipeline=fake_pipeline)
+        assert outcome.status == "failed"
+        assert str(path) in outcome.reason
+        assert not (tmp_path / "out" / path.stem / RESULT_NAME).exists()
+
+
+def test_resume_and_force(tmp_path, profile):
+    inputs = tmp_path / "in"
+    inputs.mkdir()
+    for name in ("a", "b", "c"):
+        make_png(inputs / f"{name}.png")
+    out = tmp_path / "out"
+    first = run_batch([inputs], out, profile, pipeline=fake_pipeline)
+    assert sorted(o.status for o in first.outcomes) == ["done"] * 3
+    # a run killed half-way: b's folder has its outputs and a stray temporary file, but no result.json
+    (out / "b" / RESULT_NAME).unlink()
+    (out / "b" / ".depth.tiff.123.abcd.tmp").write_bytes(b"partial")
+    stamps = {n: (out / n / RESULT_NAME).stat().st_mtime_ns for n in ("a", "c")}
+    second = run_batch([inputs], out, profile, pipeline=fake_pipeline)
+    assert {o.input_path.stem: o.status for o in second.outcomes} == {"a": "skipped", "b": "done", "c": "skipped"}
+    assert {n: (out / n / RESULT_NAME).stat().st_mtime_ns for n in ("a", "c")} == stamps
+    assert files_under(out / "b") == FULL_SET
+    third = run_batch([inputs], out, profile, force=True, pipeline=fake_pipeline)
+    assert sorted(o.status for o in third.outcomes) == ["done"] * 3
+    assert all((out / n / RESULT_NAME).stat().st_mtime_ns > stamps[n] for n in ("a", "c"))
+
+
+def test_same_stem_gets_separate_folders(tmp_path, profile):
+    make_png(tmp_path / "x.png")
+    make_tiff(tmp_path / "x.tiff")
+    report = run_batch([tmp_path / "x.png", tmp_path / "x.tiff"], tmp_path / "out", profile, pipeline=fake_pipeline)
+    assert sorted(o.output_dir.name for o in report.outcomes) == ["x", "x-tiff"]
+    assert all(o.status == "done" for o in report.outcomes)
+
+
+# --- the command line -----------------------------------------------------------------------------------------------
+
+
+def test_cli_bad_files_do_not_stop_the_batch(tmp_path):
+    inputs = tmp_path / "in"
+    inputs.mkdir()
+    (inputs / "truncated.CR2").write_bytes(b"II*\x00\x10\x00\x00\x00CR\x02\x00")
+    (inputs / "empty.png").write_bytes(b"")
+    (inputs / "notes.txt").write_text("ignored: not a photograph")
+    result = CliRunner().invoke(app, ["process", str(inputs), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 1, result.output
+    assert "2 failed" in result.output
+    assert "truncated.CR2" in result.output and "empty.png" in result.output
+    assert "notes.txt" not in result.output
+
+
+def test_cli_usage_errors(tmp_path):
+    runner = CliRunner()
+    result = runner.invoke(app, ["process", str(tmp_path), "--out", str(tmp_path / "o"), "--profile", "nope"])
+    assert result.exit_code == 2 and "nope" in result.output
+    result = runner.invoke(app, ["process", str(tmp_path), "--out", str(tmp_path / "o")])
+    assert result.exit_code == 2 and "no input files" in result.output
+
+
+
+@pytest.mark.parametrize("maker, suffix", [(make_cr2, ".CR2"), (make_tiff, ".tiff"), (make_png, ".png")])
+def test_cli_full_set_with_the_real_pipeline(tmp_path, maker, suffix):
+    pytest.importorskip("processing.pipeline", reason="processing/pipeline.py has not landed yet")
+    source = maker(tmp_path / f"shot{suffix}")
+    result = CliRunner().invoke(app, ["process", str(source), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    folder = tmp_path / "out" / "shot"
+    names = files_under(folder)
+    assert {"depth.tiff", "regions.png", "result.json", "all_in_focus.png"} <= names
+    document = json.loads((folder / RESULT_NAME).read_text())
+    assert document["status"] == "done" and document["profile"] == "paper-70d"
+    if document["regions"]:
+        assert any(n.startswith("layers/") for n in names)
+    assert {"scene.ply", "scene.glb"} <= names
+    assert os.path.getsize(folder / "depth.tiff") > 0
+
+
+def test_downscaled_raw_spans_the_whole_sensor(tmp_path, profile):
+    # a 96x64 CR2 from an EOS 70D (22.5 mm wide sensor) is a downscaled raw: each pixel is 22.5/96 mm
+    outcome = process_file(make_cr2(tmp_path / "small.CR2"), tmp_path / "out", profile, pipeline=fake_pipeline)
+    assert outcome.status == "done", outcome.reason
+    result = json.loads((tmp_path / "out" / "small" / RESULT_NAME).read_text())
+    assert result["pixel_pitch_mm"] == pytest.approx(22.5 / 96)
+    assert result["pixel_scale"] == 2.0 and result["processing_size_px"] == [48, 32]
+    assert result["capture"]["model"] == "Canon EOS 70D" and result["capture"]["cfa_pattern"] == "RGGB"
+
+
+def test_cli_profile_none_gives_disparities_only(tmp_path):
+    pytest.importorskip("processing.pipeline", reason="processing/pipeline.py has not landed yet")
+    source = make_png(tmp_path / "shot.png")
+    result = CliRunner().invoke(app, ["process", str(source), "--out", str(tmp_path / "out"), "--profile", "none"])
+    assert result.exit_code == 0, result.output
+    folder = tmp_path / "out" / "shot"
+    document = json.loads((folder / RESULT_NAME).read_text())
+    assert document["profile"] == "none" and document["mode"] == "disparity-only"
+    assert np.isnan(tifffile.imread(folder / "depth.tiff")).all()
+    assert tifffile.imread(folder / "disparity.tiff").shape == (48, 64)
+    assert not (folder / "scene.ply").exists() and not (folder / "scene.glb").exists()
+    assert all(r["distance_mm"] is None for r in document["regions"])
+
+
+def _pipeline_without_layers(planes, aperture, optics, **options) -> DepthResult:
+    result = fake_pipeline(planes, aperture, optics, **options)
+    result.layers = []
+    return result
+
+
+def test_scene_quads_fall_back_to_region_masks(tmp_path, profile):
+    outcome = process_file(make_png(tmp_path / "a.png"), tmp_path / "out", profile,
+                           pipeline=_pipeline_without_layers)
+    assert outcome.status == "done", outcome.reason
+    gltf, binary = outputs.read_glb(tmp_path / "out" / "a" / "scene.glb")
+    assert [n["extras"]["region_id"] for n in gltf["nodes"][1:]] == [1, 2]
+    texture = cv2.imdecode(np.frombuffer(outputs.glb_image(gltf, binary, 0), np.uint8), cv2.IMREAD_UNCHANGED)
+    assert texture.shape == (48, 32, 4) and (texture[..., 3] == 255).all()
+    corners = outputs.glb_accessor(gltf, binary, 0)
+    # the left half of a 64 px wide image: from its left edge to the optical axis
+    assert corners[0, 0] < 0 and corners[1, 0] == pytest.approx(0.0, abs=1e-3)
