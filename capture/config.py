@@ -193,3 +193,10 @@ def load_config(env: Mapping[str, str] | None = None, system_path: Path = SYSTEM
 
 __all__ = ["Config", "ConfigError", "ENV_VAR", "KEYS", "SYSTEM_CONFIG", "apply_file", "config_paths",
            "load_config", "read_config_file", "user_config_path", "validate_value"]
+
+
+def config_default(key: str) -> Any:
+    """The configured value of `key` for a command-line flag the user left out (defaults, then config files)."""
+    if key not in KEYS:
+        raise KeyError(key)
+    return getattr(load_config(), key)

@@ -198,3 +198,25 @@ def test_mca_config_show_reports_errors_with_exit_2(tmp_path: Path, monkeypatch:
     result = CliRunner().invoke(app, ["config", "show"])
     assert result.exit_code == 2
     assert f"{bad}: key 'workers'" in result.output
+
+
+def test_process_and_capture_take_their_defaults_from_the_config_file(tmp_path, monkeypatch):
+    """A flag left out falls back to the config file: here a broken profile named there is what gets refused."""
+    from typer.testing import CliRunner
+
+    from capture.cli import app
+
+    config = tmp_path / "config.toml"
+    config.write_text('profile = "no-such-profile"\nworkers = 1\n')
+    monkeypatch.setenv("MCA_CONFIG", str(config))
+    runner = CliRunner()
+    image = tmp_path / "in.png"
+    image.write_bytes(b"")
+    result = runner.invoke(app, ["process", str(image), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 2 and "no-such-profile" in result.output
+    # with the flag given, the config's profile is not consulted
+    given = runner.invoke(app, ["process", str(image), "--out", str(tmp_path / "out"), "--profile", "paper-70d", "-q"])
+    assert "no-such-profile" not in given.output
+    config.write_text('camera = "usb:99:99"\n')
+    captured = runner.invoke(app, ["capture", "--out", str(tmp_path / "shots")])
+    assert captured.exit_code != 0 and "99" in captured.output

@@ -8,12 +8,13 @@ import typer
 
 
 def capture(
-    camera: str = typer.Option("auto", "--camera", "-c", help="auto, sim, usb:BUS:ADDR or ptpip:HOST:PORT"),
+    camera: Optional[str] = typer.Option(None, "--camera", "-c",
+                                         help="auto, sim, usb:BUS:ADDR or ptpip:HOST:PORT (default: config, auto)"),
     count: int = typer.Option(1, "--count", "-n", min=1, help="number of shots"),
     interval: float = typer.Option(0.0, "--interval", help="seconds between shot starts"),
     out: Path = typer.Option(..., "--out", "-o", help="folder for the files and catalog.sqlite"),
     process: bool = typer.Option(False, "--process", help="run the depth pipeline on each shot"),
-    profile: Optional[str] = typer.Option(None, "--profile", help="processing profile name"),
+    profile: Optional[str] = typer.Option(None, "--profile", help="processing profile (default: config, paper-70d)"),
     record: Optional[Path] = typer.Option(None, "--record", help="rerun recording FILE.rrd for --process"),
     tethered: bool = typer.Option(False, "--tethered", help="download shots taken with the camera's shutter button until Ctrl-C"),
     delete_after_verify: bool = typer.Option(False, "--delete-after-verify", help="delete each file from the card once verified on disk"),
@@ -22,8 +23,16 @@ def capture(
     """Capture with a tethered camera; every shot is verified, fsynced and catalogued in OUT/catalog.sqlite."""
     import threading
 
+    from capture.config import ConfigError, config_default
     from capture.tether import TetherSession, camera_factory
     from devices.ptp.transport import TransportError
+
+    try:
+        camera = camera if camera is not None else config_default("camera")
+        profile = profile if profile is not None else config_default("profile")
+    except ConfigError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
 
     try:
         factory = camera_factory(camera)

@@ -25,11 +25,14 @@ def register(app: typer.Typer) -> None:
     def process(
         inputs: List[Path] = typer.Argument(..., metavar="INPUT...",
                                             help="Photographs (CR2, DNG, TIFF, PNG, JPEG, PPM) or folders of them."),
-        out: Path = typer.Option(..., "--out", "-o", help="Output folder; each input gets OUT/<stem>/."),
+        out: Optional[Path] = typer.Option(None, "--out", "-o",
+                                           help="Output folder; each input gets OUT/<stem>/ "
+                                                "(default: output_dir of the config file, see `mca config show`)."),
         profile: Optional[str] = typer.Option(None, "--profile", "-p",
-                                              help="Built-in profile name or TOML file (default paper-70d); "
+                                              help="Built-in profile name or TOML file (default: the config file's, else paper-70d); "
                                                    "'none' = filter geometry only, disparities in pixels."),
-        workers: int = typer.Option(1, "--workers", "-j", min=1, help="Files processed in parallel on this machine."),
+        workers: Optional[int] = typer.Option(None, "--workers", "-j", min=1,
+                                              help="Files processed in parallel on this machine (default: config, 1)."),
         force: bool = typer.Option(False, "--force", help="Redo inputs whose output folder is already finished."),
         watch: bool = typer.Option(False, "--watch", help="Keep processing files as they arrive in the folders."),
         watch_timeout: Optional[float] = typer.Option(None, "--watch-timeout", metavar="S",
@@ -50,10 +53,18 @@ def register(app: typer.Typer) -> None:
         import sys
 
         from capture.batch import BatchError, LineProgress, RichProgress, SilentProgress, print_summary, run_batch
+        from capture.config import ConfigError, config_default
         from processing.camera import ProfileError
 
         try:
-            camera_profile = resolve_profile(profile)
+            profile = profile if profile is not None else config_default("profile")
+            workers = workers if workers is not None else config_default("workers")
+            out = out if out is not None else config_default("output_dir")
+        except ConfigError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(2)
+        try:
+            camera_profile = resolve_profile(str(profile))
         except ProfileError as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(2)
