@@ -1,0 +1,235 @@
+"""The accurate-depth pipeline: one MCA capture's colour planes in, the 2.1D sketch, depths and 3D images out.
+
+Stages (names as given to the recorder and used as keys of `DepthResult.timings_s`):
+
+- "planes":       planes (H, W, 3) float32 linear RGB at processing resolution, as handed in
+                  (after moving the channels to common sample positions when `channel_offsets_px`
+                  is given).
+- "disparity":    disparity_px (h, w) float32 per-pixel widest-pair disparity in INPUT pixels on
+                  the analysis grid, confidence (h, w) float32 in [0, 1], cost (h, w) colour-line
+                  measure at the minimum, analysis_scale (processing px per analysis px).
+- "sketch":       labels (h, w) int32 region ids 1..L on the analysis grid, aligned (h, w, 3) the
+                  fringe-free image the segmentation used, region_count, focus_region, order
+                  {id: rank}, occludes {id: [ids]}.
+- "refine":       disparity_px {id: value at the region centroid, input px}, slant {id: (a, b, c) or
+                  None}, dip {id: cost-dip confidence}.
+- "depth":        labels (H, W) uint16, disparity_px (H, W) float32 region model in input px,
+                  depth_mm (H, W) float32 distance from the lens (absent without optics), regions
+                  (list of `Region`).
+- "all_in_focus": image (H, W, 3) float32 linear RGB with the channels re-aligned per region.
+- "mpi":          layers (list of `MultiPlaneImage`, back to front).
+
+`Recorder.timing(stage, seconds)` is called after each stage with its wall-clock time.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Iterator
+
+import cv2
+import numpy as np
+
+from processing.camera import FilterAperture
+from processing.depth import depth_map_mm, region_depth
+from processing.disparity import DisparityMap, DisparityParams, band_pass, estimate_disparity, sample_shifted
+from processing.mpi import all_in_focus, multi_plane_images
+from processing.optics import MCAOptics
+from processing.result import DepthResult, NullRecorder, Recorder, Region
+from processing.sketch import (RefineParams, SketchParams, build_sketch, occlusion_aware_weights, refine_regions,
+                               rescale_plane)
+
+# Position of each channel's samples relative to the centre of its 2x2 RGGB block, in half-resolution
+# (processing) pixels, for planes taken straight from an RGGB mosaic: red at (0, 0), the mean of the two
+# greens at the centre, blue at (1, 1) of each block. Pass as `channel_offsets_px` so that the Bayer
+# offsets are not mistaken for disparity (half a pixel of red-blue offset is ~7 mm at the paper's setup).
+RGGB_HALF_RES_OFFSETS_PX: tuple[tuple[float, float], ...] = ((-0.25, -0.25), (0.0, 0.0), (0.25, 0.25))
+
+# Search range around the focus plane when optics are known (inter-object depth, mm), with margin over
+# the -150..+300 mm the appliance is specified for, reaching a wall half a metre behind the focus plane.
+DEPTH_RANGE_MM = (-190.0, 600.0)
+
+
+@dataclass(frozen=True)
+class PipelineParams:
+    """Knobs of the whole pipeline; defaults are those the evaluation and the tests use."""
+
+    analysis_max_side_px: int = 960        # the per-pixel search and the sketch run on a grid this large
+    disparity: DisparityParams = DisparityParams()
+    sketch: SketchParams = SketchParams()
+    refine: RefineParams = RefineParams()
+    occlusion_margin_px: int = 3           # analysis px excluded beside occluders when refining
+
+
+@dataclass
+class _Timer:
+    recorder: Recorder
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def stage(self, name: str) -> "_Stage":
+        return _Stage(self, name)
+
+
+class _Stage:
+    def __init__(self, timer: _Timer, name: str) -> None:
+        self.timer, self.name = timer, name
+
+    def __enter__(self) -> "_Stage":
+        self.start = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        seconds = time.perf_counter() - self.start
+        self.timer.timings[self.name] = seconds
+        if exc[0] is None:
+            self.timer.recorder.timing(self.name, seconds)
+
+
+def default_disparity_range_px(aperture: FilterAperture, optics: MCAOptics | None,
+                               shape_px: tuple[int, int]) -> tuple[float, float]:
+    """Search range in input pixels: DEPTH_RANGE_MM around the focus plane with optics, else from the frame
+    size (-2 % .. +3.5 % of the longer side, which covers the authors' range for the bando2008 photographs)."""
+    if optics is not None:
+        focus = optics.focus_distance_mm
+        low = float(optics.disparity_px_at_distance(focus + DEPTH_RANGE_MM[0]))
+        high = float(optics.disparity_px_at_distance(focus + DEPTH_RANGE_MM[1]))
+        return (min(low, high), max(low, high))
+    side = float(max(shape_px))
+    return (-max(6.0, 0.02 * side), max(10.0, 0.035 * side))
+
+
+def align_channel_samples(planes: np.ndarray, offsets_px: tuple[tuple[float, float], ...]) -> np.ndarray:
+    """Resample each channel so that its samples sit at the pixel centres (cubic interpolation)."""
+    out = np.empty_like(planes, dtype=np.float32)
+    for c in range(3):
+        dx, dy = offsets_px[c]
+        channel = np.ascontiguousarray(planes[..., c], dtype=np.float32)
+        out[..., c] = channel if dx == 0 and dy == 0 else sample_shifted(channel, -dx, -dy, cv2.INTER_CUBIC)
+    return out
+
+
+def run_pipeline(planes: np.ndarray, aperture: FilterAperture, optics: MCAOptics | None, *,
+                 pixel_scale: float = 1.0, disparity_range_px: tuple[float, float] | None = None,
+                 recorder: Recorder | None = None, channel_offsets_px: tuple[tuple[float, float], ...] | None = None,
+                 params: PipelineParams = PipelineParams()) -> DepthResult:
+    """Recover regions, their occlusion order and depths from one MCA capture (paper sections IV-V).
+
+    planes: (H, W, 3) float32 linear RGB at processing resolution; pixel_scale: input-image pixels per
+    processing pixel (2 for half-resolution Bayer planes); disparity_range_px: search range in input
+    pixels (default: `default_disparity_range_px`). All disparities reported are between the widest
+    filter pair in input-image pixels, + = farther than focus; `optics` (with the input pixel pitch)
+    turns them into depths, without it depths stay None. See the module docstring for the stages
+    reported to `recorder`.
+    """
+    recorder = recorder if recorder is not None else NullRecorder()
+    timer = _Timer(recorder)
+    if planes.ndim != 3 or planes.shape[2] != 3:
+        raise ValueError(f"planes must be (H, W, 3), got shape {planes.shape}")
+    planes = np.ascontiguousarray(planes, dtype=np.float32)
+    height, width = planes.shape[:2]
+    total_start = time.perf_counter()
+
+    with timer.stage("planes"):
+        if channel_offsets_px is not None:
+            planes = align_channel_samples(planes, channel_offsets_px)
+        recorder.record("planes", planes=planes, pixel_scale=pixel_scale)
+
+    # --- per-pixel disparity on the analysis grid --------------------------------------------------------------
+    with timer.stage("disparity"):
+        factor = max(1, int(np.ceil(max(height, width) / params.analysis_max_side_px)))
+        if factor > 1:
+            small = cv2.resize(planes, (width // factor, height // factor), interpolation=cv2.INTER_AREA)
+        else:
+            small = planes
+        range_in = disparity_range_px or default_disparity_range_px(aperture, optics,
+                                                                   (int(height * pixel_scale), int(width * pixel_scale)))
+        to_analysis = 1.0 / (pixel_scale * factor)
+        range_an = (range_in[0] * to_analysis - 1.0, range_in[1] * to_analysis + 1.0)
+        disparity = estimate_disparity(small, aperture, range_an, params.disparity)
+        recorder.record("disparity", disparity_px=disparity.disparity_px / np.float32(to_analysis),
+                        confidence=disparity.confidence, cost=disparity.cost, analysis_scale=float(factor))
+
+    # --- the 2.1D sketch -------------------------------------------------------------------------------------------
+    with timer.stage("sketch"):
+        sketch = build_sketch(small, aperture, disparity, params.sketch)
+        recorder.record("sketch", labels=sketch.labels, aligned=sketch.aligned, region_count=len(sketch.regions),
+                        focus_region=sketch.focus_region, order=sketch.order, occludes=sketch.occludes)
+
+    # --- sub-pixel region models on the processing grid ------------------------------------------------------------
+    with timer.stage("refine"):
+        labels_full = cv2.resize(sketch.labels.astype(np.int32), (width, height), interpolation=cv2.INTER_NEAREST)
+        weights_an = occlusion_aware_weights(sketch.labels, disparity.confidence, sketch.occludes,
+                                             params.occlusion_margin_px)
+        weights_full = cv2.resize(weights_an, (width, height), interpolation=cv2.INTER_LINEAR)
+        init = {r.id: rescale_plane(r.plane, float(factor)) for r in sketch.regions}
+        slanted = {r.id: r.slanted for r in sketch.regions}
+        refine = params.refine
+        refine = RefineParams(**{**refine.__dict__, "search_radius_px": max(refine.search_radius_px, 0.75 * factor)})
+        planes_proc, dips = refine_regions(planes, aperture, labels_full, weights_full, init, slanted, refine)
+        centroids = {r.id: ((r.centroid_xy[0] + 0.5) * factor - 0.5, (r.centroid_xy[1] + 0.5) * factor - 0.5)
+                     for r in sketch.regions}
+        planes_in = {i: rescale_plane(p, pixel_scale) for i, p in planes_proc.items()}
+        centre_disp = {}
+        for i, (a, b, c) in planes_in.items():
+            x, y = ((centroids[i][0] + 0.5) * pixel_scale - 0.5, (centroids[i][1] + 0.5) * pixel_scale - 0.5)
+            centre_disp[i] = float(a * x + b * y + c)
+        recorder.record("refine", disparity_px=centre_disp,
+                        slant={i: (planes_in[i] if slanted[i] else None) for i in planes_in}, dip=dips)
+
+    # --- depth ---------------------------------------------------------------------------------------------------
+    with timer.stage("depth"):
+        ys, xs = np.mgrid[0:height, 0:width].astype(np.float32)
+        model_proc = np.zeros((height, width), np.float32)
+        for i, (a, b, c) in planes_proc.items():
+            sel = labels_full == i
+            model_proc[sel] = a * xs[sel] + b * ys[sel] + c
+        del xs, ys
+        model_in = model_proc * np.float32(pixel_scale)
+        raw_in = cv2.resize(disparity.disparity_px, (width, height), interpolation=cv2.INTER_LINEAR) \
+            / np.float32(to_analysis)
+        confidence_full = cv2.resize(disparity.confidence, (width, height), interpolation=cv2.INTER_LINEAR)
+        depth = depth_map_mm(model_in, optics) if optics is not None else None
+        # order: by disparity, nearest first (smaller disparity = nearer)
+        ranked = sorted(planes_in, key=lambda i: centre_disp[i])
+        order = {i: rank for rank, i in enumerate(ranked)}
+        focus_id = min(centre_disp, key=lambda i: abs(centre_disp[i])) if centre_disp else None
+        focus_tol_in = params.sketch.focus_tolerance_px * factor * pixel_scale
+        if focus_id is not None and abs(centre_disp[focus_id]) > max(focus_tol_in, 1.0):
+            focus_id = None
+        counts = np.bincount(labels_full.ravel(), minlength=int(labels_full.max()) + 1)
+        regions = []
+        for r in sketch.regions:
+            i = r.id
+            chain = region_depth(centre_disp[i], optics) if optics is not None else None
+            occludes = sorted(j for j in sketch.occludes.get(i, []) if centre_disp[j] > centre_disp[i]) + sorted(
+                j for j, backs in sketch.occludes.items() if i in backs and centre_disp[j] > centre_disp[i])
+            regions.append(Region(
+                id=i, pixels=int(counts[i]), order=order[i], occludes=sorted(set(occludes)),
+                disparity_px=centre_disp[i],
+                inter_image_depth_mm=chain.inter_image_depth_mm if chain else None,
+                inter_object_depth_mm=chain.inter_object_depth_mm if chain else None,
+                distance_mm=chain.distance_mm if chain else None,
+                slant=tuple(float(v) for v in planes_in[i]) if slanted[i] else None,
+                in_focus=(i == focus_id), confidence=float(np.clip(0.5 * r.confidence + 0.5 * dips.get(i, 0.0), 0, 1)),
+            ))
+        regions.sort(key=lambda r: r.order)
+        record_items = dict(labels=labels_full.astype(np.uint16), disparity_px=model_in, regions=regions)
+        if depth is not None:
+            record_items["depth_mm"] = depth
+        recorder.record("depth", **record_items)
+
+    # --- the 3D images -----------------------------------------------------------------------------------------------
+    with timer.stage("all_in_focus"):
+        sharp = all_in_focus(planes, aperture, model_proc)
+        recorder.record("all_in_focus", image=sharp)
+    with timer.stage("mpi"):
+        by_id = {r.id: r for r in regions}
+        layers = multi_plane_images(sharp, labels_full, [r.id for r in regions],
+                                    {i: by_id[i].disparity_px for i in by_id},
+                                    {i: by_id[i].inter_image_depth_mm for i in by_id},
+                                    {i: by_id[i].inter_object_depth_mm for i in by_id})
+        recorder.record("mpi", layers=layers)
+    timer.timings["total"] = time.perf_counter() - total_start
+    return DepthResult(labels=labels_full.astype(np.uint16), disparity_px=model_in, raw_disparity_px=raw_in,
+                       confidence=confidence_full, depth_mm=depth, all_in_focus=sharp, regions=regions,
+                       focus_region=focus_id, layers=layers, pixel_scale=pixel_scale, timings_s=timer.timings)

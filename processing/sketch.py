@@ -1,0 +1,723 @@
+"""The 2.1D sketch (paper section IV-A, eq. 1): the image decomposed into L regions with disparities and occlusion order.
+
+Steps, all on the analysis grid:
+1. re-align the channels with the (smoothed) per-pixel disparity, so that colour fringes
+   of out-of-focus objects vanish and every object shows its own colour;
+2. oversegment into superpixels (SLIC) in a space of chromaticity, log luminance and
+   disparity: texture modulates luminance, objects differ in chromaticity or depth;
+3. merge adjacent superpixels greedily while both their colour and their disparity
+   models agree (plane models, so a slanted object grows along its slope); same-colour
+   objects at different depths stay apart, different-colour objects at one depth too;
+4. absorb slivers (defocus rims, colour fringes) into their most similar neighbour;
+5. per region a robust disparity model: constant or plane, chosen by model selection;
+6. occlusion: for each pair of touching regions the one in front (smaller disparity at
+   their shared boundary) occludes the other; boundary ownership (the raw disparity
+   measured on the boundary follows the occluder's) is recorded as evidence. The order
+   ranks regions by disparity, 0 = nearest.
+"""
+from __future__ import annotations
+
+import heapq
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from processing.camera import FilterAperture
+from processing.disparity import DisparityMap, warp_channels
+
+
+@dataclass(frozen=True)
+class SketchParams:
+    """Parameters of the decomposition; lengths in analysis-grid pixels."""
+
+    superpixel_px: int = 14                 # typical superpixel side
+    slic_compactness: float = 1.0
+    disparity_weight: float = 0.6           # SLIC feature units per pixel of disparity
+    chroma_threshold: float = 0.045         # chromaticity distance that separates two colours
+    luminance_threshold: float = 1.5        # |log luminance| difference that separates two colours
+    disparity_threshold_px: float = 0.7     # disparity step at a shared boundary that separates two objects
+    min_region_fraction: float = 0.015      # smaller regions are absorbed by a neighbour
+    sliver_thickness_px: float = 6.0        # thinner regions (2 area / perimeter) are rims, absorbed too ...
+    sliver_max_fraction: float = 0.04       # ... up to this size
+    slant_min_span_px: float = 1.2          # a plane is kept only if it spans at least this much disparity
+    slant_min_gain: float = 0.5             # ... and explains this fraction of the constant model's residual
+    focus_tolerance_px: float = 0.6         # |disparity| below which a region counts as in focus
+
+
+@dataclass
+class SketchRegion:
+    """One region of the sketch on the analysis grid."""
+
+    id: int
+    pixels: int
+    centroid_xy: tuple[float, float]
+    plane: tuple[float, float, float]       # disparity = a x + b y + c (analysis px, analysis coordinates)
+    slanted: bool
+    confidence: float
+    colour: tuple[float, float, float]      # mean linear RGB of the re-aligned image
+
+    def disparity_at(self, x: float | np.ndarray, y: float | np.ndarray) -> float | np.ndarray:
+        a, b, c = self.plane
+        return a * x + b * y + c
+
+    @property
+    def disparity_px(self) -> float:
+        return float(self.disparity_at(*self.centroid_xy))
+
+
+@dataclass
+class Sketch:
+    """The 2.1D sketch: labels 1..L, regions, occlusion pairs and front-to-back order (0 = nearest)."""
+
+    labels: np.ndarray                      # (H, W) int32, 1..L
+    regions: list[SketchRegion]
+    occludes: dict[int, list[int]]          # id -> ids it occludes (touching and behind it)
+    ownership: dict[tuple[int, int], float]  # (front, back) -> fraction of boundary evidence agreeing
+    order: dict[int, int]                   # id -> rank, 0 = nearest
+    focus_region: int | None
+    aligned: np.ndarray                     # (H, W, 3) re-aligned planes the segmentation used
+    superpixels: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.int32))
+
+    def region(self, region_id: int) -> SketchRegion:
+        return next(r for r in self.regions if r.id == region_id)
+
+
+# --- helpers ---------------------------------------------------------------------------------------------------
+
+
+def smooth_disparity(disparity: DisparityMap, sigma_px: float) -> np.ndarray:
+    """Confidence-weighted Gaussian smoothing (normalised convolution) of the per-pixel disparity."""
+    weight = disparity.confidence.astype(np.float32) + 1e-4
+    num = cv2.GaussianBlur(disparity.disparity_px * weight, (0, 0), sigma_px)
+    den = cv2.GaussianBlur(weight, (0, 0), sigma_px)
+    return (num / den).astype(np.float32)
+
+
+def _colour_features(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Chromaticity (r, g) / (r + g + b) and log luminance of a linear RGB image."""
+    total = image.sum(axis=2) + 1e-4
+    chroma = image[..., :2] / total[..., None]
+    log_lum = np.log(total / 3.0 + 1e-3)
+    return chroma.astype(np.float32), log_lum.astype(np.float32)
+
+
+def weighted_median_by_label(labels: np.ndarray, values: np.ndarray, weights: np.ndarray,
+                             count: int) -> np.ndarray:
+    """Weighted median of `values` in each label 0..count-1 (NaN for empty labels)."""
+    flat_l = labels.ravel()
+    flat_v = values.ravel().astype(np.float64)
+    flat_w = weights.ravel().astype(np.float64) + 1e-9
+    order = np.lexsort((flat_v, flat_l))
+    sv, sw = flat_v[order], flat_w[order]
+    cum = np.cumsum(sw)
+    totals = np.bincount(flat_l, weights=flat_w, minlength=count)
+    starts = np.concatenate([[0.0], np.cumsum(totals)[:-1]])
+    index = np.searchsorted(cum, starts + 0.5 * totals)
+    result = np.full(count, np.nan)
+    present = np.bincount(flat_l, minlength=count) > 0
+    result[present] = sv[np.minimum(index[present], len(sv) - 1)]
+    return result
+
+
+def adjacency(labels: np.ndarray) -> dict[tuple[int, int], int]:
+    """Touching label pairs (a < b) with their boundary length in pixel edges (4-connectivity)."""
+    pairs = []
+    for a, b in ((labels[:, :-1], labels[:, 1:]), (labels[:-1, :], labels[1:, :])):
+        diff = a != b
+        lo = np.minimum(a[diff], b[diff]).astype(np.int64)
+        hi = np.maximum(a[diff], b[diff]).astype(np.int64)
+        pairs.append(lo * (int(labels.max()) + 1) + hi)
+    keys, counts = np.unique(np.concatenate(pairs), return_counts=True)
+    base = int(labels.max()) + 1
+    return {(int(k // base), int(k % base)): int(c) for k, c in zip(keys, counts)}
+
+
+def boundary_pixels(labels: np.ndarray, first: int, second: int, width_px: int = 1) -> np.ndarray:
+    """Mask of pixels of either region within `width_px` of their shared boundary."""
+    kernel = np.ones((2 * width_px + 1, 2 * width_px + 1), np.uint8)
+    a = (labels == first).astype(np.uint8)
+    b = (labels == second).astype(np.uint8)
+    return ((cv2.dilate(a, kernel) & b) | (cv2.dilate(b, kernel) & a)).astype(bool)
+
+
+@dataclass
+class _Stats:
+    """Mergeable sufficient statistics of a region (superpixel-level points for the disparity plane)."""
+
+    pixels: float
+    rgb: np.ndarray                # sum of linear RGB
+    log_lum: float                 # sum of log luminance
+    sw: float                      # plane least squares: sums over superpixel points weighted by w
+    sx: float
+    sy: float
+    sd: float
+    sxx: float
+    syy: float
+    sxy: float
+    sxd: float
+    syd: float
+    sdd: float
+    members: list[int]
+
+    def merged(self, other: "_Stats") -> "_Stats":
+        return _Stats(self.pixels + other.pixels, self.rgb + other.rgb, self.log_lum + other.log_lum,
+                      *(getattr(self, k) + getattr(other, k) for k in
+                        ("sw", "sx", "sy", "sd", "sxx", "syy", "sxy", "sxd", "syd", "sdd")),
+                      self.members + other.members)
+
+    @property
+    def chroma(self) -> np.ndarray:
+        total = float(self.rgb.sum()) + 1e-9
+        return self.rgb[:2] / total
+
+    @property
+    def mean_log_lum(self) -> float:
+        return self.log_lum / max(self.pixels, 1.0)
+
+    def plane(self, ridge_px: float) -> tuple[float, float, float]:
+        """Weighted least squares plane, slopes shrunk toward 0 (ridge of a region of size `ridge_px`)."""
+        if self.sw <= 0:
+            return (0.0, 0.0, 0.0)
+        mx, my, md = self.sx / self.sw, self.sy / self.sw, self.sd / self.sw
+        cxx = self.sxx / self.sw - mx * mx + ridge_px ** 2
+        cyy = self.syy / self.sw - my * my + ridge_px ** 2
+        cxy = self.sxy / self.sw - mx * my
+        cxd = self.sxd / self.sw - mx * md
+        cyd = self.syd / self.sw - my * md
+        det = cxx * cyy - cxy * cxy
+        if det <= 1e-12:
+            return (0.0, 0.0, md)
+        a = (cyy * cxd - cxy * cyd) / det
+        b = (cxx * cyd - cxy * cxd) / det
+        return (a, b, md - a * mx - b * my)
+
+
+def _superpixel_stats(superpixels: np.ndarray, count: int, aligned: np.ndarray, log_lum: np.ndarray,
+                      disparity: np.ndarray, confidence: np.ndarray) -> list[_Stats]:
+    flat = superpixels.ravel()
+    pixels = np.bincount(flat, minlength=count).astype(np.float64)
+    rgb = np.stack([np.bincount(flat, weights=aligned[..., c].ravel(), minlength=count) for c in range(3)], axis=1)
+    lum = np.bincount(flat, weights=log_lum.ravel(), minlength=count)
+    ys, xs = np.indices(superpixels.shape)
+    safe = np.maximum(pixels, 1.0)
+    cx = np.bincount(flat, weights=xs.ravel(), minlength=count) / safe
+    cy = np.bincount(flat, weights=ys.ravel(), minlength=count) / safe
+    d = weighted_median_by_label(superpixels, disparity, confidence, count)
+    conf = np.bincount(flat, weights=confidence.ravel(), minlength=count)
+    stats = []
+    for i in range(count):
+        w = float(conf[i]) if np.isfinite(d[i]) else 0.0
+        di = float(d[i]) if np.isfinite(d[i]) else 0.0
+        x, y = float(cx[i]), float(cy[i])
+        stats.append(_Stats(float(pixels[i]), rgb[i].astype(np.float64), float(lum[i]),
+                            w, w * x, w * y, w * di, w * x * x, w * y * y, w * x * y, w * x * di, w * y * di,
+                            w * di * di, [i]))
+    return stats
+
+
+# --- the sketch -------------------------------------------------------------------------------------------------
+
+
+def build_sketch(planes: np.ndarray, aperture: FilterAperture, disparity: DisparityMap,
+                 params: SketchParams = SketchParams()) -> Sketch:
+    """Decompose the analysis-grid `planes` into the regions of a 2.1D sketch (see the module docstring)."""
+    from skimage.segmentation import slic
+
+    height, width = planes.shape[:2]
+    smooth = smooth_disparity(disparity, 2.0)
+    aligned = warp_channels(planes, aperture, smooth)
+    chroma, log_lum = _colour_features(aligned)
+
+    # 2. superpixels in (chromaticity, log luminance, disparity)
+    lum_scale = 0.05
+    features = np.dstack([chroma / params.chroma_threshold, log_lum * (lum_scale / 0.05) * 0.5,
+                          smooth * params.disparity_weight]).astype(np.float32)
+    n_segments = max(16, int(height * width / params.superpixel_px ** 2))
+    superpixels = slic(features, n_segments=n_segments, compactness=params.slic_compactness, start_label=0,
+                       channel_axis=-1, enforce_connectivity=True, convert2lab=False, sigma=0.5)
+    superpixels = superpixels.astype(np.int32)
+    count = int(superpixels.max()) + 1
+
+    stats = _superpixel_stats(superpixels, count, aligned, log_lum, disparity.disparity_px, disparity.confidence)
+    edges = adjacency(superpixels)
+    region_of = _merge(stats, edges, superpixels, params, height * width)
+    labels = region_of[superpixels]
+    labels = _relabel(labels)
+    labels = _absorb_small(labels, aligned, disparity, params)
+    regions = _fit_regions(labels, aligned, disparity, params)
+    occludes, ownership = _occlusion(labels, regions, disparity)
+    ranked = sorted(regions, key=lambda r: r.disparity_px)
+    order = {r.id: rank for rank, r in enumerate(ranked)}
+    focus = min(regions, key=lambda r: abs(r.disparity_px)) if regions else None
+    focus_id = focus.id if focus is not None and abs(focus.disparity_px) <= params.focus_tolerance_px else None
+    return Sketch(labels, regions, occludes, ownership, order, focus_id, aligned, superpixels)
+
+
+def _merge_cost(a: _Stats, b: _Stats, boundary_xy: tuple[float, float], params: SketchParams
+                ) -> float:
+    """Largest of the colour and disparity distances, each in units of its threshold (merge when < 1)."""
+    chroma = float(np.linalg.norm(a.chroma - b.chroma)) / params.chroma_threshold
+    lum = abs(a.mean_log_lum - b.mean_log_lum) / params.luminance_threshold
+    ridge_a = 40.0 / np.sqrt(max(len(a.members), 1))
+    ridge_b = 40.0 / np.sqrt(max(len(b.members), 1))
+    x, y = boundary_xy
+    if a.sw > 0 and b.sw > 0:
+        pa, pb = a.plane(ridge_a), b.plane(ridge_b)
+        da = pa[0] * x + pa[1] * y + pa[2]
+        db = pb[0] * x + pb[1] * y + pb[2]
+        disparity = abs(da - db) / params.disparity_threshold_px
+    else:
+        disparity = 0.0
+    return max(chroma, lum, disparity)
+
+
+def _merge(stats: list[_Stats], edges: dict[tuple[int, int], int], superpixels: np.ndarray,
+           params: SketchParams, total_pixels: int) -> np.ndarray:
+    """Greedy agglomeration of superpixels; returns the region index of each superpixel."""
+    count = len(stats)
+    ys, xs = np.indices(superpixels.shape)
+    # boundary midpoints of superpixel pairs
+    sums: dict[tuple[int, int], list[float]] = {}
+    for a_img, b_img, xa, ya in ((superpixels[:, :-1], superpixels[:, 1:], xs[:, :-1] + 0.5, ys[:, :-1]),
+                                 (superpixels[:-1, :], superpixels[1:, :], xs[:-1, :], ys[:-1, :] + 0.5)):
+        diff = a_img != b_img
+        lo = np.minimum(a_img[diff], b_img[diff]).astype(np.int64)
+        hi = np.maximum(a_img[diff], b_img[diff]).astype(np.int64)
+        key = lo * count + hi
+        uniq, inverse = np.unique(key, return_inverse=True)
+        sx = np.bincount(inverse, weights=xa[diff])
+        sy = np.bincount(inverse, weights=ya[diff])
+        n = np.bincount(inverse)
+        for k, vx, vy, vn in zip(uniq, sx, sy, n):
+            entry = sums.setdefault((int(k // count), int(k % count)), [0.0, 0.0, 0.0])
+            entry[0] += vx
+            entry[1] += vy
+            entry[2] += vn
+    parent = list(range(count))
+    alive = {i: stats[i] for i in range(count)}
+    neighbours: dict[int, dict[int, list[float]]] = {i: {} for i in range(count)}
+    for (a, b), (sx_, sy_, n_) in sums.items():
+        neighbours[a][b] = [sx_, sy_, n_]
+        neighbours[b][a] = [sx_, sy_, n_]
+    version = [0] * count
+    heap: list[tuple[float, int, int, int, int]] = []
+
+    def push(a: int, b: int) -> None:
+        sx_, sy_, n_ = neighbours[a][b]
+        cost = _merge_cost(alive[a], alive[b], (sx_ / n_, sy_ / n_), params)
+        if cost < 1.0:
+            heapq.heappush(heap, (cost, a, b, version[a], version[b]))
+
+    for a in range(count):
+        for b in neighbours[a]:
+            if a < b:
+                push(a, b)
+    while heap:
+        cost, a, b, va, vb = heapq.heappop(heap)
+        if a not in alive or b not in alive or version[a] != va or version[b] != vb:
+            continue
+        # merge b into a
+        alive[a] = alive[a].merged(alive[b])
+        del alive[b]
+        parent[b] = a
+        for c, (sx_, sy_, n_) in neighbours.pop(b).items():
+            neighbours[c].pop(b, None)
+            if c == a:
+                continue
+            entry = neighbours[a].setdefault(c, [0.0, 0.0, 0.0])
+            entry[0] += sx_
+            entry[1] += sy_
+            entry[2] += n_
+            neighbours[c][a] = entry
+        version[a] += 1
+        for c in list(neighbours[a]):
+            push(a, c)
+    region = np.empty(count, dtype=np.int32)
+    for i in range(count):
+        root = i
+        while parent[root] != root:
+            root = parent[root]
+        region[i] = root
+    return region
+
+
+def _relabel(labels: np.ndarray) -> np.ndarray:
+    """Consecutive ids 1..L, numbered in raster order of first appearance; each id one connected component."""
+    out = np.zeros(labels.shape, np.int32)
+    next_id = 1
+    for value in np.unique(labels):
+        mask = (labels == value).astype(np.uint8)
+        n, components = cv2.connectedComponents(mask, connectivity=4)
+        for k in range(1, n):
+            out[components == k] = next_id
+            next_id += 1
+    return out
+
+
+def _absorb_small(labels: np.ndarray, aligned: np.ndarray, disparity: DisparityMap,
+                  params: SketchParams) -> np.ndarray:
+    """Merge small regions and thin rims (defocus rims, colour fringes at occlusion boundaries) into the
+    touching region most alike in colour and disparity, smallest first."""
+    total = labels.size
+    count = int(labels.max()) + 1
+    flat = labels.ravel()
+    chroma, log_lum = _colour_features(aligned)
+    sizes = np.bincount(flat, minlength=count).astype(np.float64)
+    csum = np.stack([np.bincount(flat, weights=chroma[..., k].ravel(), minlength=count) for k in range(2)], axis=1)
+    lsum = np.bincount(flat, weights=log_lum.ravel(), minlength=count)
+    dmed = weighted_median_by_label(labels, disparity.disparity_px, disparity.confidence, count)
+    edges = adjacency(labels)
+    perimeter = np.zeros(count)
+    neighbours: dict[int, dict[int, float]] = {i: {} for i in range(count)}
+    for (a, b), length in edges.items():
+        neighbours[a][b] = neighbours[b].get(a, 0) + length
+        neighbours[b][a] = neighbours[a][b]
+        perimeter[a] += length
+        perimeter[b] += length
+    border = np.zeros(count)
+    for line in (labels[0], labels[-1], labels[:, 0], labels[:, -1]):
+        border += np.bincount(line, minlength=count)
+    perimeter += border
+    parent = np.arange(count)
+
+    def fragment(i: int) -> bool:
+        """A piece of a neighbour: same disparity and nearly the same colour (mixed pixels at its rim)."""
+        for j in neighbours[i]:
+            if sizes[j] <= sizes[i] or not (np.isfinite(dmed[i]) and np.isfinite(dmed[j])):
+                continue
+            if abs(dmed[i] - dmed[j]) < 0.5 * params.disparity_threshold_px and np.linalg.norm(
+                    csum[i] / sizes[i] - csum[j] / sizes[j]) < 2.0 * params.chroma_threshold:
+                return True
+        return False
+
+    def is_small(i: int) -> bool:
+        thickness = 2.0 * sizes[i] / max(perimeter[i], 1.0)
+        return sizes[i] > 0 and (sizes[i] < params.min_region_fraction * total or (
+            sizes[i] < params.sliver_max_fraction * total and (
+                thickness < params.sliver_thickness_px or fragment(i))))
+
+    while True:
+        small = [i for i in range(1, count) if parent[i] == i and is_small(i) and neighbours[i]]
+        if not small:
+            break
+        i = min(small, key=lambda k: sizes[k])
+        best, best_cost = None, np.inf
+        for j, length in neighbours[i].items():
+            ci, cj = csum[i] / sizes[i], csum[j] / sizes[j]
+            dd = abs(dmed[i] - dmed[j]) if np.isfinite(dmed[i]) and np.isfinite(dmed[j]) else 0.0
+            cost = (np.linalg.norm(ci - cj) / params.chroma_threshold
+                    + abs(lsum[i] / sizes[i] - lsum[j] / sizes[j]) / params.luminance_threshold
+                    + dd / params.disparity_threshold_px - 0.5 * np.log(length / max(perimeter[i], 1.0)))
+            if cost < best_cost:
+                best, best_cost = j, cost
+        assert best is not None
+        j = best
+        parent[i] = j
+        if np.isfinite(dmed[i]) and np.isfinite(dmed[j]):
+            dmed[j] = (dmed[j] * sizes[j] + dmed[i] * sizes[i] * 0.0) / sizes[j]   # keep the larger one's value
+        sizes[j] += sizes[i]
+        csum[j] += csum[i]
+        lsum[j] += lsum[i]
+        shared = neighbours[i].get(j, 0.0)
+        perimeter[j] += perimeter[i] - 2 * shared
+        for k, length in neighbours.pop(i).items():
+            neighbours[k].pop(i, None)
+            if k == j:
+                continue
+            neighbours[j][k] = neighbours[j].get(k, 0.0) + length
+            neighbours[k][j] = neighbours[j][k]
+        sizes[i] = 0
+    root = parent.copy()
+    for i in range(count):
+        r = i
+        while parent[r] != r:
+            r = parent[r]
+        root[i] = r
+    merged = root[labels]
+    uniq = np.unique(merged)
+    lookup = np.zeros(count, np.int32)
+    lookup[uniq] = np.arange(1, len(uniq) + 1) if uniq[0] != 0 else np.arange(len(uniq))
+    return lookup[merged]
+
+
+def robust_plane(xs: np.ndarray, ys: np.ndarray, values: np.ndarray, weights: np.ndarray,
+                 iterations: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """IRLS (Tukey-like) fit of values = a x + b y + c; returns (a, b, c) and the final weights."""
+    w = weights.astype(np.float64).copy()
+    design = np.stack([xs, ys, np.ones_like(xs)], axis=1).astype(np.float64)
+    coef = np.zeros(3)
+    for _ in range(iterations):
+        sw = np.sqrt(w)
+        coef, *_ = np.linalg.lstsq(design * sw[:, None], values * sw, rcond=None)
+        residual = values - design @ coef
+        scale = 1.4826 * np.median(np.abs(residual[w > 0])) + 1e-3 if np.any(w > 0) else 1.0
+        w = weights * np.clip(1.0 - (residual / (4.0 * scale)) ** 2, 0.0, 1.0) ** 2
+    return coef, w
+
+
+def robust_constant(values: np.ndarray, weights: np.ndarray, iterations: int = 6) -> tuple[float, np.ndarray]:
+    """IRLS location estimate with biweight weights; returns the value and the final weights."""
+    w = weights.astype(np.float64).copy()
+    value = float(np.average(values, weights=w + 1e-12))
+    order = np.argsort(values)
+    cum = np.cumsum(w[order])
+    value = float(values[order][np.searchsorted(cum, cum[-1] / 2)]) if cum[-1] > 0 else value
+    for _ in range(iterations):
+        residual = values - value
+        scale = 1.4826 * np.median(np.abs(residual[w > 0])) + 1e-3 if np.any(w > 0) else 1.0
+        w = weights * np.clip(1.0 - (residual / (4.0 * scale)) ** 2, 0.0, 1.0) ** 2
+        if w.sum() <= 0:
+            break
+        value = float(np.average(values, weights=w))
+    return value, w
+
+
+def interior_weights(labels: np.ndarray, confidence: np.ndarray, margin_px: int) -> np.ndarray:
+    """Confidence with pixels closer than `margin_px` to a region boundary down-weighted (mixed windows)."""
+    edges = np.zeros(labels.shape, np.uint8)
+    edges[:, 1:] |= (labels[:, 1:] != labels[:, :-1]).astype(np.uint8)
+    edges[1:, :] |= (labels[1:, :] != labels[:-1, :]).astype(np.uint8)
+    distance = cv2.distanceTransform((1 - edges).astype(np.uint8), cv2.DIST_L2, 3)
+    return confidence * np.clip(distance / max(margin_px, 1), 0.0, 1.0)
+
+
+def _fit_regions(labels: np.ndarray, aligned: np.ndarray, disparity: DisparityMap,
+                 params: SketchParams) -> list[SketchRegion]:
+    weights = interior_weights(labels, disparity.confidence, 5)
+    regions = []
+    ys, xs = np.indices(labels.shape)
+    for region_id in range(1, int(labels.max()) + 1):
+        mask = labels == region_id
+        n = int(mask.sum())
+        if n == 0:
+            continue
+        x, y = xs[mask].astype(np.float64), ys[mask].astype(np.float64)
+        d = disparity.disparity_px[mask].astype(np.float64)
+        w = weights[mask].astype(np.float64)
+        if w.sum() < 1e-6:
+            w = disparity.confidence[mask].astype(np.float64) + 1e-6
+        cx, cy = float(x.mean()), float(y.mean())
+        plane, slanted, confidence = select_model(x - cx, y - cy, d, w, params)
+        a, b, c = plane
+        colour = tuple(float(v) for v in aligned[mask].mean(axis=0))
+        regions.append(SketchRegion(region_id, n, (cx, cy), (a, b, c - a * cx - b * cy), slanted,
+                                    confidence, colour))  # type: ignore[arg-type]
+    return regions
+
+
+def select_model(x: np.ndarray, y: np.ndarray, d: np.ndarray, w: np.ndarray, params: SketchParams
+                 ) -> tuple[tuple[float, float, float], bool, float]:
+    """Constant or plane disparity for one region (coordinates centred): keep the plane only if it spans
+    a real disparity range over the region and removes most of the constant model's residual."""
+    value, wc = robust_constant(d, w)
+    coef, wp = robust_plane(x, y, d, w)
+    resid_c = float(np.sum(wc * (d - value) ** 2) / max(wc.sum(), 1e-9))
+    resid_p = float(np.sum(wp * (d - (coef[0] * x + coef[1] * y + coef[2])) ** 2) / max(wp.sum(), 1e-9))
+    inliers = wp > 0.05 * (w.max() if w.size else 1.0)
+    if inliers.sum() > 10:
+        predicted = coef[0] * x[inliers] + coef[1] * y[inliers]
+        span = float(np.percentile(predicted, 95) - np.percentile(predicted, 5))
+    else:
+        span = 0.0
+    gain = 1.0 - resid_p / max(resid_c, 1e-12)
+    confidence = float(np.clip(w.mean() * 4.0, 0.0, 1.0))
+    if span >= params.slant_min_span_px and gain >= params.slant_min_gain:
+        return (float(coef[0]), float(coef[1]), float(coef[2])), True, confidence
+    return (0.0, 0.0, float(value)), False, confidence
+
+
+def _occlusion(labels: np.ndarray, regions: list[SketchRegion], disparity: DisparityMap
+               ) -> tuple[dict[int, list[int]], dict[tuple[int, int], float]]:
+    """Touching pairs: the nearer region (smaller disparity at the shared boundary) occludes the other.
+
+    Ownership evidence: on the boundary the measured disparity follows the occluding region, so
+    the fraction of confident boundary pixels closer to the front region's model is recorded.
+    """
+    by_id = {r.id: r for r in regions}
+    occludes: dict[int, list[int]] = {r.id: [] for r in regions}
+    ownership: dict[tuple[int, int], float] = {}
+    for (a, b), length in adjacency(labels).items():
+        if a == 0 or b == 0 or a not in by_id or b not in by_id:
+            continue
+        band = boundary_pixels(labels, a, b, 2)
+        ys, xs = np.nonzero(band)
+        da = by_id[a].disparity_at(xs, ys)
+        db = by_id[b].disparity_at(xs, ys)
+        front, back = (a, b) if float(np.mean(da - db)) < 0 else (b, a)
+        measured = disparity.disparity_px[ys, xs]
+        conf = disparity.confidence[ys, xs]
+        d_front = by_id[front].disparity_at(xs, ys)
+        d_back = by_id[back].disparity_at(xs, ys)
+        agree = np.abs(measured - d_front) < np.abs(measured - d_back)
+        ownership[(front, back)] = float(np.sum(conf * agree) / max(np.sum(conf), 1e-9))
+        occludes[front].append(back)
+    for key in occludes:
+        occludes[key].sort()
+    return occludes, ownership
+
+
+# --- sub-pixel refinement of the region models at processing resolution ------------------------------------------
+
+
+def rescale_plane(plane: tuple[float, float, float], factor: float) -> tuple[float, float, float]:
+    """A disparity plane moved to a grid `factor` times finer: x_new = (x_old + 0.5) factor - 0.5, d scaled too."""
+    a, b, c = plane
+    return (a, b, factor * c + (a + b) * (0.5 - 0.5 * factor))
+
+
+def occlusion_aware_weights(labels: np.ndarray, confidence: np.ndarray, occludes: dict[int, list[int]],
+                            margin_px: int) -> np.ndarray:
+    """Confidence, zeroed in each region within `margin_px` of a region that occludes it: there the
+    windows mix the occluder's edge (at the occluder's disparity) and per-channel disocclusions."""
+    weights = confidence.astype(np.float32).copy()
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin_px + 1, 2 * margin_px + 1))
+    for front, backs in occludes.items():
+        if not backs:
+            continue
+        grown = cv2.dilate((labels == front).astype(np.uint8), kernel).astype(bool)
+        for back in backs:
+            weights[grown & (labels == back)] = 0.0
+    return weights
+
+
+@dataclass(frozen=True)
+class RefineParams:
+    """Sub-pixel refinement of region models on the processing grid."""
+
+    window_px: int = 9
+    noise_floor: float = 2e-3
+    search_radius_px: float = 2.0       # +- around the analysis estimate, processing px
+    coarse_step_px: float = 0.5
+    fine_step_px: float = 0.1
+    max_pixels: int = 600_000           # a region is refined on a coarser level beyond this many pixels
+    band_sigma_px: tuple[float, float] = (2.0, 10.0)   # band-pass at every level: band-limits, so that the
+                                                      # linear interpolation does not pull toward whole pixels
+    cell_px: int = 48                   # side of the cells whose minima are fitted robustly (processing px)
+
+
+def _parabola_min(xs: np.ndarray, ys: np.ndarray) -> float:
+    i = int(np.argmin(ys))
+    if 0 < i < len(xs) - 1:
+        from processing.disparity import subpixel_minimum
+        step = xs[i + 1] - xs[i]
+        return float(xs[i] + step * subpixel_minimum(np.array(ys[i - 1]), np.array(ys[i]), np.array(ys[i + 1])))
+    return float(xs[i])
+
+
+def refine_regions(planes: np.ndarray, aperture: FilterAperture, labels: np.ndarray, weights: np.ndarray,
+                   planes_px: dict[int, tuple[float, float, float]], slanted: dict[int, bool],
+                   params: RefineParams = RefineParams()) -> tuple[dict[int, tuple[float, float, float]],
+                                                                   dict[int, float]]:
+    """Refine each region's disparity model (processing px) by minimising the colour-line cost summed
+    over the region's weighted pixels, first over a coarse grid of offsets, then a fine one with a
+    parabola fit. Slanted regions also get their slope refit from tiles along the slope.
+
+    Returns the refined planes and, per region, the depth of the cost dip (a confidence in [0, 1]).
+    """
+    from processing.disparity import AlignmentCost, band_pass
+
+    pyramid = {0: (band_pass(planes, *params.band_sigma_px), labels, weights)}
+    band = planes
+    results: dict[int, tuple[float, float, float]] = {}
+    dips: dict[int, float] = {}
+    counts = np.bincount(labels.ravel(), minlength=int(labels.max()) + 1)
+    for region_id, plane in planes_px.items():
+        level = 0
+        while counts[region_id] / 4 ** level > params.max_pixels:
+            level += 1
+        if level not in pyramid:
+            f = 2 ** level
+            size = (max(1, band.shape[1] // f), max(1, band.shape[0] // f))
+            # Gaussian pyramid (anti-aliased): aliasing would not move with the disparity and pull it toward 0
+            reduced = planes
+            for _ in range(level):
+                reduced = cv2.pyrDown(reduced)
+            reduced = cv2.resize(reduced, size, interpolation=cv2.INTER_LINEAR) if reduced.shape[1::-1] != size \
+                else reduced
+            pyramid[level] = (band_pass(reduced, *params.band_sigma_px),
+                              cv2.resize(labels.astype(np.int32), size, interpolation=cv2.INTER_NEAREST),
+                              cv2.resize(weights, size, interpolation=cv2.INTER_AREA))
+        lband, llabels, lweights = pyramid[level]
+        factor = 2.0 ** level
+        lplane = rescale_plane(plane, 1.0 / factor)
+        mask = llabels == region_id
+        ys, xs = np.nonzero(mask)
+        if xs.size == 0:
+            results[region_id], dips[region_id] = plane, 0.0
+            continue
+        d_range = np.array([lplane[0] * x + lplane[1] * y + lplane[2] for x, y in
+                            ((xs.min(), ys.min()), (xs.max(), ys.max()), (xs.min(), ys.max()), (xs.max(), ys.min()))])
+        radius = params.search_radius_px / factor
+        reach = int(np.ceil(np.abs(d_range).max() * 0.75 + radius + params.window_px)) + 2
+        x0, x1 = max(0, xs.min() - reach), min(lband.shape[1], xs.max() + reach + 1)
+        y0, y1 = max(0, ys.min() - reach), min(lband.shape[0], ys.max() + reach + 1)
+        crop = np.ascontiguousarray(lband[y0:y1, x0:x1])
+        cost_model = AlignmentCost(crop, aperture, params.window_px, params.noise_floor)
+        cy, cx = np.mgrid[y0:y1, x0:x1].astype(np.float32)
+        model = (lplane[0] * cx + lplane[1] * cy + lplane[2]).astype(np.float32)
+        cmask = mask[y0:y1, x0:x1]
+        # windows reaching past the image border see replicated pixels, not the scene: leave them out
+        border = params.window_px // 2 + int(np.ceil(np.abs(d_range).max() * 0.75 + radius)) + 1
+        inside = np.zeros(lband.shape[:2], bool)
+        inside[border:-border or None, border:-border or None] = True
+        cmask_inner = cmask & inside[y0:y1, x0:x1]
+        if cmask_inner.sum() >= 0.1 * cmask.sum():
+            cmask = cmask_inner
+        w = lweights[y0:y1, x0:x1] * cmask
+        if w.sum() < 1e-6:
+            w = cmask.astype(np.float32)
+        # cells of a grid over the region: each gets its own sub-pixel minimum, then a robust fit over
+        # the cells rejects those contaminated by another object (mislabelled pixels, occluder edges)
+        cell = max(8, int(params.cell_px / factor))
+        cell_ids = ((cy - y0) // cell).astype(np.int64) * ((x1 - x0) // cell + 1) + ((cx - x0) // cell).astype(np.int64)
+        n_cells = int(cell_ids.max()) + 2
+        bins = np.where(cmask, cell_ids, n_cells - 1)
+
+        def curve(offsets: np.ndarray) -> np.ndarray:
+            out = np.empty((n_cells, len(offsets)))
+            for k, delta in enumerate(offsets):
+                cost = cost_model.per_pixel(model + np.float32(delta))
+                out[:, k] = np.bincount(bins.ravel(), weights=(cost * w).ravel(), minlength=n_cells)
+            return out[:-1]
+
+        wsum = np.bincount(bins.ravel(), weights=w.ravel(), minlength=n_cells)[:-1]
+        coarse = np.arange(-radius, radius + 1e-9, params.coarse_step_px / factor) if radius > 0 else np.zeros(1)
+        coarse_cells = curve(coarse)
+        coarse_curve = coarse_cells.sum(axis=0) / max(wsum.sum(), 1e-9)
+        # robust centre: weighted median of the cells' coarse minima
+        cell_best = coarse[np.argmin(coarse_cells, axis=1)]
+        used = wsum > 0.05 * wsum.max()
+        order_ = np.argsort(cell_best[used])
+        cum = np.cumsum(wsum[used][order_])
+        centre = float(cell_best[used][order_][np.searchsorted(cum, cum[-1] / 2)]) if used.any() else 0.0
+        fine_step = params.fine_step_px / factor
+        fine = centre + np.arange(-6, 7) * fine_step
+        fine_cells = curve(fine)
+        total = fine_cells.sum(axis=0) / max(wsum.sum(), 1e-9)
+        dips[region_id] = float(np.clip((coarse_curve.mean() - total.min()) / max(coarse_curve.mean(), 1e-6) * 3.0,
+                                        0.0, 1.0))
+        # per-cell minimum, weight = curvature x weight; minima at the end of the fine range are outliers
+        best = np.argmin(fine_cells, axis=1)
+        inner = (best > 0) & (best < len(fine) - 1) & (wsum > 0)
+        idx = np.clip(best, 1, len(fine) - 2)
+        rows = np.arange(len(best))
+        before, at, after = fine_cells[rows, idx - 1], fine_cells[rows, idx], fine_cells[rows, idx + 1]
+        from processing.disparity import subpixel_minimum
+        offsets = fine[idx] + fine_step * subpixel_minimum(before, at, after)
+        curvature = np.maximum(before - 2 * at + after, 0.0) / np.maximum(wsum, 1e-9)
+        cell_w = np.where(inner, np.sqrt(wsum) * np.sqrt(curvature), 0.0)
+        cxs = np.bincount(bins.ravel(), weights=(cx * w).ravel(), minlength=n_cells)[:-1] / np.maximum(wsum, 1e-9)
+        cys = np.bincount(bins.ravel(), weights=(cy * w).ravel(), minlength=n_cells)[:-1] / np.maximum(wsum, 1e-9)
+        a, b = lplane[0], lplane[1]
+        if np.count_nonzero(cell_w) == 0:
+            new = (a, b, lplane[2] + _parabola_min(fine, total))
+        elif slanted.get(region_id, False) and np.count_nonzero(cell_w) >= 4:
+            mx, my = np.average(cxs, weights=cell_w + 1e-12), np.average(cys, weights=cell_w + 1e-12)
+            coef, _ = robust_plane(cxs - mx, cys - my, offsets, cell_w)
+            new = (a + coef[0], b + coef[1], lplane[2] + coef[2] - coef[0] * mx - coef[1] * my)
+        else:
+            value, _ = robust_constant(offsets, cell_w)
+            new = (a, b, lplane[2] + value)
+        results[region_id] = rescale_plane(new, factor)
+    return results, dips

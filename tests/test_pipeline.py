@@ -1,0 +1,108 @@
+"""The whole pipeline on a small simulated paper scene: regions, order, depths, 3D images and the recorder."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from capture.profiles import load_profile
+from processing.evaluate import bayer_planes
+from processing.mpi import composite
+from processing.pipeline import RGGB_HALF_RES_OFFSETS_PX, default_disparity_range_px, run_pipeline
+from processing.scenes import paper_scene
+from processing.simulate import SensorModel, SimulationOptics, render
+
+
+class ListRecorder:
+    def __init__(self):
+        self.stages, self.timings = {}, {}
+
+    def record(self, stage, **items):
+        self.stages[stage] = items
+
+    def timing(self, stage, seconds):
+        self.timings[stage] = seconds
+
+
+@pytest.fixture(scope="module")
+def paper_a():
+    optics = SimulationOptics.from_profile(load_profile("paper-70d"), 0.25)
+    sensor = SensorModel()
+    rendering = render(paper_scene("paper-a", optics.focus_distance_mm), optics, sensor, seed=3)
+    planes = bayer_planes(rendering.mosaic, sensor.black_level, sensor.white_level)
+    recorder = ListRecorder()
+    result = run_pipeline(planes, optics.aperture, optics.mca, pixel_scale=2.0,
+                          channel_offsets_px=RGGB_HALF_RES_OFFSETS_PX, recorder=recorder)
+    return optics, rendering, result, recorder
+
+
+def test_search_range_covers_the_specified_depths():
+    optics = SimulationOptics.from_profile(load_profile("paper-70d"), 1.0).mca
+    low, high = default_disparity_range_px(load_profile("paper-70d").aperture, optics, (3648, 5472))
+    assert low <= optics.disparity_px_at_distance(optics.focus_distance_mm - 150) <= -27.0
+    assert high >= optics.disparity_px_at_distance(optics.focus_distance_mm + 300) >= 34.0
+
+
+def test_regions_order_and_depths(paper_a):
+    optics, rendering, result, _ = paper_a
+    truth = rendering.truth
+    assert len(result.regions) == len(truth["objects"]) + 1       # five pots and the wall
+    by_label = {}
+    for obj in truth["objects"]:
+        mask = rendering.labels[::2, ::2][:result.labels.shape[0], :result.labels.shape[1]] == obj["id"]
+        ids, counts = np.unique(result.labels[mask], return_counts=True)
+        by_label[obj["paper_label"]] = next(r for r in result.regions if r.id == ids[np.argmax(counts)])
+    errors = []
+    for obj in truth["objects"]:
+        region = by_label[obj["paper_label"]]
+        if obj["inter_object_depth_mm"] == 0:
+            assert region.in_focus and result.focus_region == region.id
+            assert abs(region.inter_object_depth_mm) < 4.0
+        else:
+            errors.append(abs(region.inter_object_depth_mm - obj["inter_object_depth_mm"])
+                          / abs(obj["inter_object_depth_mm"]))
+    assert np.median(errors) < 0.06 and max(errors) < 0.2         # at quarter size; full size is ~2x better
+    ranks = [by_label[label].order for label in "EDCBA"]          # E nearest ... A farthest
+    assert ranks == sorted(ranks)
+    wall = max(result.regions, key=lambda r: r.disparity_px)
+    assert wall.order == len(result.regions) - 1
+    assert abs(wall.inter_object_depth_mm - 500.0) < 40.0
+
+
+def test_depth_map_and_units(paper_a):
+    optics, _, result, _ = paper_a
+    assert result.depth_mm is not None and result.depth_mm.shape == result.labels.shape
+    for region in result.regions:
+        inside = result.labels == region.id
+        assert np.allclose(np.nanmedian(result.depth_mm[inside]), region.distance_mm, atol=3.0)
+        assert np.isclose(region.distance_mm, optics.focus_distance_mm + region.inter_object_depth_mm)
+    assert result.pixel_scale == 2.0
+
+
+def test_three_d_images(paper_a):
+    _, _, result, _ = paper_a
+    assert len(result.layers) == len(result.regions)
+    disparities = [layer.disparity_px for layer in result.layers]
+    assert disparities == sorted(disparities, reverse=True)        # back to front
+    alpha = sum(layer.rgba[..., 3] for layer in result.layers)
+    assert np.allclose(alpha, 1.0)                                  # the planes tile the image
+    flat = composite(result.layers)
+    assert flat.shape == result.all_in_focus.shape
+    for layer in result.layers:
+        assert layer.inter_object_depth_mm is not None and layer.inter_image_depth_mm is not None
+
+
+def test_recorder_and_timings(paper_a):
+    _, _, result, recorder = paper_a
+    stages = ["planes", "disparity", "sketch", "refine", "depth", "all_in_focus", "mpi"]
+    assert list(recorder.stages) == stages
+    assert set(stages) <= set(result.timings_s) and "total" in result.timings_s
+    assert "confidence" in recorder.stages["disparity"] and "depth_mm" in recorder.stages["depth"]
+
+
+def test_without_optics_depths_stay_none():
+    profile = load_profile("bando2008")
+    rng = np.random.default_rng(0)
+    planes = np.clip(rng.random((90, 120, 3)).astype(np.float32), 0, 1)
+    result = run_pipeline(planes, profile.aperture, None)
+    assert result.depth_mm is None
+    assert all(r.inter_object_depth_mm is None and r.distance_mm is None for r in result.regions)
