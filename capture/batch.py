@@ -13,6 +13,7 @@ import multiprocessing
 import os
 import sys
 import time
+import uuid
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +35,8 @@ class Task:
     input_path: Path
     out_name: str
     record_path: Path | None = None
+    shot_index: int = 0                  # position on the recording's shot timeline
+    recording_id: str | None = None      # shared by the files of one batch: one recording, many shots
 
 
 # --- discovery ------------------------------------------------------------------------------------------------------
@@ -97,9 +100,13 @@ class _Job:
     force: bool
     pipeline: PipelineFunction | None
     on_stage: Callable[[Task, str], None] | None = None   # progress display, called in this process
+    recorder: Any = None                                   # a live recorder (inline runner only)
 
     def kwargs(self, task: Task) -> dict[str, Any]:
-        kwargs: dict[str, Any] = {"force": self.force, "record_path": task.record_path, "out_name": task.out_name}
+        kwargs: dict[str, Any] = {"force": self.force, "record_path": task.record_path, "out_name": task.out_name,
+                                  "shot_index": task.shot_index, "recording_id": task.recording_id}
+        if self.recorder is not None:
+            kwargs["recorder"] = self.recorder
         if self.pipeline is not None:
             kwargs["pipeline"] = self.pipeline
         return kwargs
@@ -437,13 +444,19 @@ def _stable(path: Path, seen: dict[Path, tuple[int, int, float]], settle_s: floa
 def run_batch(sources: list[Path], out_root: Path, profile: CameraProfile, *, workers: int = 1,
               cluster: str | None = None, force: bool = False, record: Path | None = None, watch: bool = False,
               watch_timeout_s: float | None = None, poll_interval_s: float = 1.0, settle_s: float = 2.0,
-              progress: Progress | None = None, pipeline: PipelineFunction | None = None) -> BatchReport:
+              progress: Progress | None = None, pipeline: PipelineFunction | None = None,
+              recorder: Any = None) -> BatchReport:
     """Process every input under `sources` into `out_root`; with `watch`, keep processing files as they arrive.
 
     Watch mode polls the folders every `poll_interval_s`, takes a file once its size and time stamp
     have not changed for `settle_s` seconds, and stops on Ctrl-C or after `watch_timeout_s` without a new or running file.
-    With `record`, each file records into `<out>/<name>/recording.rrd`, merged into `record` at the end.
+    With `record`, each file records into `<out>/<name>/recording.rrd`, merged into `record` at the end
+    as one recording whose `shot` timeline steps through the files. A live `recorder` (e.g. one
+    serving a web viewer) receives every shot; it needs the files processed here, one at a time.
     """
+    if recorder is not None and (workers > 1 or cluster):
+        raise BatchError("a live recorder (--serve) needs the files processed here one at a time: "
+                         "drop --workers/--cluster, or use --record and open the file afterwards")
     out_root = Path(out_root).resolve()
     sources = [Path(s).resolve() for s in sources]   # absolute: cluster workers see the same shared paths
     out_root.mkdir(parents=True, exist_ok=True)
@@ -451,6 +464,9 @@ def run_batch(sources: list[Path], out_root: Path, profile: CameraProfile, *, wo
     report = BatchReport()
     runner = make_runner(out_root, profile, workers=workers, cluster=cluster, force=force, pipeline=pipeline,
                          on_stage=progress.stage if getattr(progress, "wants_stages", False) else None)
+    if recorder is not None:
+        runner.job.recorder = recorder  # type: ignore[attr-defined]
+    recording_id = str(uuid.uuid4()) if record is not None else None
     names: dict[str, Path] = {}
     known: set[Path] = set()
     sizes: dict[Path, tuple[int, int, float]] = {}
@@ -470,7 +486,8 @@ def run_batch(sources: list[Path], out_root: Path, profile: CameraProfile, *, wo
                 continue
             known.add(path)
             name = assign_name(path, names)
-            queue.append(Task(path, name, out_root / name / RECORDING_NAME if record else None))
+            queue.append(Task(path, name, out_root / name / RECORDING_NAME if record else None,
+                              shot_index=len(known) - 1, recording_id=recording_id))
             new = True
         if new:
             last_activity = time.monotonic()

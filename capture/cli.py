@@ -2,11 +2,17 @@
 from __future__ import annotations
 
 import importlib
+import os
 import pkgutil
 
 import typer
 
 from capture import commands
+
+# Nothing leaves the bench: rerun's SDK and viewer send no usage analytics from any `mca` process.
+os.environ.pop("FORCE_RERUN_ANALYTICS", None)
+os.environ.setdefault("RERUN_ANALYTICS", "0")
+os.environ.setdefault("TELEMETRY_ENABLED", "false")
 
 app = typer.Typer(
     name="mca",

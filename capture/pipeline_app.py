@@ -384,12 +384,16 @@ def is_finished(out_dir: Path) -> bool:
 
 def process_file(input_path: str | Path, out_root: str | Path, profile: CameraProfile, *, force: bool = False,
                  record_path: str | Path | None = None, out_name: str | None = None,
-                 pipeline: PipelineFunction | None = None, on_stage: StageCallback | None = None) -> FileOutcome:
+                 pipeline: PipelineFunction | None = None, on_stage: StageCallback | None = None,
+                 shot_index: int = 0, recording_id: str | None = None, recorder: Any = None) -> FileOutcome:
     """Process one photograph into `out_root/<stem>/` (or `out_root/<out_name>/`); never raises for a bad file.
 
     Skips a finished folder unless `force`. With `record_path`, records the shot with the rerun
-    recorder into that .rrd file. `pipeline` replaces `processing.pipeline.run_pipeline` (tests);
-    `on_stage(name)` is called as each of `STAGES` finishes (progress displays).
+    recorder into that .rrd file, as shot number `shot_index` of the recording `recording_id`
+    (files of one batch share it, so their merged recording is one timeline of shots). A live
+    `recorder` (a `capture.recording.RerunRecorder` kept open by the caller, e.g. one serving a
+    viewer or a tethered session) is used instead and left open. `pipeline` replaces
+    `processing.pipeline.run_pipeline` (tests); `on_stage(name)` is called as each of `STAGES` finishes.
     """
     started = time.perf_counter()
     input_path = Path(input_path)
@@ -398,7 +402,8 @@ def process_file(input_path: str | Path, out_root: str | Path, profile: CameraPr
         return FileOutcome(input_path, "skipped", out_dir, time.perf_counter() - started,
                            reason="already finished (result.json exists); use --force to redo")
     try:
-        regions = _process(input_path, out_dir, profile, record_path, pipeline, on_stage)
+        regions = _process(input_path, out_dir, profile, record_path, pipeline, on_stage,
+                           shot_index=shot_index, recording_id=recording_id, live_recorder=recorder)
     except (KeyboardInterrupt, SystemExit):
         raise
     except Exception as exc:  # one bad file must never stop a batch: report it, keep going
@@ -410,7 +415,8 @@ def process_file(input_path: str | Path, out_root: str | Path, profile: CameraPr
 
 
 def _process(input_path: Path, out_dir: Path, profile: CameraProfile, record_path: str | Path | None,
-             pipeline: PipelineFunction | None, on_stage: StageCallback | None) -> int:
+             pipeline: PipelineFunction | None, on_stage: StageCallback | None, *, shot_index: int = 0,
+             recording_id: str | None = None, live_recorder: Any = None) -> int:
     run = pipeline or _default_pipeline()
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -420,14 +426,15 @@ def _process(input_path: Path, out_dir: Path, profile: CameraProfile, record_pat
     optics = _optics_for(profile, loaded)
 
     with contextlib.ExitStack() as stack:
-        recorder = None
-        if record_path is not None:
+        recorder = live_recorder
+        if recorder is None and record_path is not None:
             from capture.recording import RerunRecorder
 
             Path(record_path).parent.mkdir(parents=True, exist_ok=True)
-            recorder = RerunRecorder(Path(record_path), application_id="mca")
+            recorder = RerunRecorder(Path(record_path), application_id="mca", recording_id=recording_id)
             stack.callback(recorder.close)
-            recorder.begin_shot(0, input_path.stem, _capture_time(loaded.metadata), profile)
+        if recorder is not None:
+            recorder.begin_shot(shot_index, input_path.stem, _capture_time(loaded.metadata), profile)
             recorder.log_input(loaded.frame)
         timer = _StageTimer(recorder, on_stage)
         t0 = time.perf_counter()

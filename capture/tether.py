@@ -186,6 +186,7 @@ class TetherSession:
         self.camera: Camera | None = None
         self.reconnects = 0
         self._profile_obj: Any = None
+        self._recorder: Any = None
 
     # connection ------------------------------------------------------------
     def connect(self) -> Camera:
@@ -216,7 +217,21 @@ class TetherSession:
     def _cam(self) -> Camera:
         return self.camera if self.camera is not None else self.connect()
 
+    def _live_recorder(self) -> Any:
+        """One recording for the whole session (`--record`): every shot on its `shot` timeline."""
+        if self.record is None:
+            return None
+        if self._recorder is None:
+            from capture.recording import RerunRecorder
+
+            Path(self.record).parent.mkdir(parents=True, exist_ok=True)
+            self._recorder = RerunRecorder(Path(self.record), application_id="mca")
+        return self._recorder
+
     def close(self) -> None:
+        if self._recorder is not None:
+            self._recorder.close()
+            self._recorder = None
         if self.camera is not None:
             try:
                 self.camera.close()
@@ -361,7 +376,8 @@ class TetherSession:
         try:
             if self._profile_obj is None:
                 self._profile_obj = load_profile(self.profile or DEFAULT_PROFILE)
-            outcome = pipeline_app.process_file(path, self.out_dir, self._profile_obj, record_path=self.record)
+            outcome = pipeline_app.process_file(path, self.out_dir, self._profile_obj, recorder=self._live_recorder(),
+                                                shot_index=shot_id)
         except Exception as exc:  # noqa: BLE001 - a processing failure must not lose the shot
             outcome = None
             reason = f"processing failed: {exc}"

@@ -180,3 +180,21 @@ def test_stage_progress_reaches_the_display(tmp_path, profile, workers):
     assert [o.status for o in report.outcomes] == ["done", "done"]
     for name in ("a.png", "b.png"):
         assert [s for n, s in log.stages if n == name] == ["read", "disparity", "write"]
+
+
+def test_batch_recording_is_one_timeline_of_shots(tmp_path):
+    """The merged --record file holds one recording whose `shot` timeline steps through the inputs."""
+    pytest.importorskip("rerun")
+    from test_recording import read_columns, rrd_verify
+
+    folder = tmp_path / "in"
+    folder.mkdir()
+    for name in ("a", "b", "c"):
+        make_png(folder / f"{name}.png", 32, 40)
+    merged = tmp_path / "all.rrd"
+    result = CliRunner().invoke(app, ["process", str(folder), "--out", str(tmp_path / "out"), "--workers", "2",
+                                      "--record", str(merged), "-q"])
+    assert result.exit_code == 0, result.output
+    assert rrd_verify(merged).returncode == 0
+    shots = sorted(set(read_columns(merged)["/shot/input"]["shot"]))
+    assert shots == [0, 1, 2]

@@ -126,21 +126,29 @@ def test_truth_is_consistent_with_the_optics() -> None:
     assert entry["inter_object_depth_mm"] == pytest.approx(35.0)
     assert float(optics.distance_mm(entry["disparity_px"])) == pytest.approx(focus + 35.0, abs=1e-6)
     assert entry["slant"]["from_inter_object_depth_mm"] == pytest.approx(-30.0)
-    # The depth map ramps linearly along the bar from one end to the other.
+    # The bar is a true plane: 1/distance (hence the disparity) is affine along it, from one end to the other.
     row = rendering.depth_mm[SMALL.height_px // 2]
     inside = np.nonzero(rendering.labels[SMALL.height_px // 2] == 1)[0]
     assert row[inside[0]] == pytest.approx(focus - 30.0, abs=0.5)
     assert row[inside[-1]] == pytest.approx(focus + 100.0, abs=0.5)
     assert np.all(np.diff(row[inside]) > 0)
-    # The slanted bar's channels: measured disparity near each end follows the local distance.
+    inverse = 1.0 / row[inside].astype(np.float64)
+    line = np.polyfit(inside, inverse, 1)
+    assert np.abs(np.polyval(line, inside) - inverse).max() < 1e-3 * (inverse.max() - inverse.min())
+    distance = np.polyfit(inside, row[inside].astype(np.float64), 1)   # a linear distance ramp is not a plane
+    assert np.abs(np.polyval(distance, inside) - row[inside]).max() > 1.0
+    low, high = entry["slant"]["extent_px"]
+    assert abs(low - inside[0]) <= 1.0 and abs(high - inside[-1]) <= 1.0
+    assert knife.distance_at_mm(0.75) == pytest.approx(1.0 / (0.5 / (focus - 30.0) + 0.5 / (focus + 100.0)))
+    # The slanted bar's channels: measured disparity near each end follows the local (planar) distance.
     h = SMALL.height_px // 2
     planes = render(scene, SMALL, NOISELESS, cosited=True).planes_linear
-    for end, depth in ((0.40, -30.0 + 130.0 * 0.15 / 1.0), (1.10, -30.0 + 130.0 * 0.85 / 1.0)):
+    for end in (0.40, 1.10):
         x = int(end * h)
         window = (slice(int(0.47 * h), int(0.53 * h)), slice(x - 40, x + 40))
         shift, _, _ = phase_cross_correlation(planes[..., 0][window], planes[..., 2][window],
                                               upsample_factor=50, normalization=None)
-        expected = float(optics.disparity_px_at_distance(focus + depth))
+        expected = float(optics.disparity_px_at_distance(knife.distance_at_mm((x + 0.5) / h)))
         assert 2 * float(shift[1]) == pytest.approx(expected, abs=0.3)   # red relative to blue
 
 

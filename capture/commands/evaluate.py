@@ -9,7 +9,7 @@ def register(app: typer.Typer) -> None:
     def evaluate(
         scene: str = typer.Option("all", "--scene", "-s", help="paper-a .. paper-g, or 'all'."),
         profile: str = typer.Option("paper-70d", "--profile", "-p", help="Built-in profile name or TOML file."),
-        scale: float = typer.Option(0.5, "--scale", help="Render size as a fraction of the profile's sensor "
+        scale: float = typer.Option(1.0, "--scale", help="Render size as a fraction of the profile's sensor "
                                                          "(1.0 = the full 20 MP; smaller is faster, less precise)."),
         seed: int = typer.Option(0, "--seed", help="Seed of the simulated sensor noise."),
         peers: bool = typer.Option(True, "--peers/--no-peers", help="Also run StereoSGBM and integer WTA."),

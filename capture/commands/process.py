@@ -43,6 +43,12 @@ def register(app: typer.Typer) -> None:
                                      help="With --watch: take a file once unchanged for S seconds."),
         record: Optional[Path] = typer.Option(None, "--record", metavar="FILE.rrd",
                                               help="Record every shot (rerun); merged into FILE.rrd at the end."),
+        serve: bool = typer.Option(False, "--serve",
+                                   help="Stream every shot to a rerun web viewer while processing (one file at a "
+                                        "time); keeps serving until Ctrl-C."),
+        bind: str = typer.Option("127.0.0.1", "--bind", metavar="ADDRESS",
+                                 help="With --serve: address the viewer listens on; only an explicit "
+                                      "non-loopback address opens it to the network."),
         cluster: Optional[str] = typer.Option(None, "--cluster", metavar="tcp://HOST:8786",
                                               help="Run on a Dask distributed scheduler (shared filesystem)."),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress, only the summary."),
@@ -80,13 +86,36 @@ def register(app: typer.Typer) -> None:
             progress = RichProgress()
         else:
             progress = LineProgress(lambda line: typer.echo(line))
+        live = None
+        if serve:
+            if workers > 1 or cluster:
+                typer.echo("error: --serve streams from this process, one file at a time: drop --workers/--cluster, "
+                           "or use --record and open the file with `mca view` afterwards", err=True)
+                raise typer.Exit(2)
+            from capture.recording import RerunRecorder
+
+            live = RerunRecorder(None, serve=True, bind=bind)
+            typer.echo(f"rerun viewer: {live.viewer_url}", err=True)
         try:
             report = run_batch(list(inputs), out, camera_profile, workers=workers, cluster=cluster, force=force,
                                record=record, watch=watch, watch_timeout_s=watch_timeout,
-                               poll_interval_s=poll_interval, settle_s=settle, progress=progress)
+                               poll_interval_s=poll_interval, settle_s=settle, progress=progress, recorder=live)
         except BatchError as exc:
             typer.echo(f"error: {exc}", err=True)
+            if live is not None:
+                live.close()
             raise typer.Exit(2)
         print_summary(report)
+        if live is not None:
+            import time
+
+            typer.echo(f"still serving the viewer at {live.viewer_url}; Ctrl-C to stop", err=True)
+            try:
+                while True:
+                    time.sleep(1.0)
+            except KeyboardInterrupt:
+                pass
+            finally:
+                live.close()
         if report.failed:
             raise typer.Exit(1)
