@@ -283,3 +283,53 @@ def test_scene_quads_fall_back_to_region_masks(tmp_path, profile):
     corners = outputs.glb_accessor(gltf, binary, 0)
     # the left half of a 64 px wide image: from its left edge to the optical axis
     assert corners[0, 0] < 0 and corners[1, 0] == pytest.approx(0.0, abs=1e-3)
+
+
+KILLED_BATCH = """
+import sys, time
+sys.path.insert(0, sys.argv[3])
+from pathlib import Path
+from capture.batch import run_batch
+from capture.profiles import load_profile
+from test_process import fake_pipeline
+
+def slow_pipeline(*args, **kwargs):
+    time.sleep(0.4)
+    return fake_pipeline(*args, **kwargs)
+
+run_batch([Path(sys.argv[1])], Path(sys.argv[2]), load_profile("paper-70d"), pipeline=slow_pipeline)
+"""
+
+
+def test_a_batch_killed_half_way_resumes_without_redoing_finished_files(tmp_path):
+    """SIGKILL a real batch process mid-way; the rerun redoes only what had not finished."""
+    import signal
+    import time
+    import subprocess
+    import sys
+
+    inputs = tmp_path / "in"
+    inputs.mkdir()
+    names = [f"f{i}" for i in range(8)]
+    for name in names:
+        make_png(inputs / f"{name}.png")
+    out = tmp_path / "out"
+    script = tmp_path / "batch.py"
+    script.write_text(KILLED_BATCH)
+    proc = subprocess.Popen([sys.executable, str(script), str(inputs), str(out), str(Path(__file__).parent)])
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not any((out / n / RESULT_NAME).exists() for n in names[:3]):
+        time.sleep(0.02)
+    time.sleep(0.5)                         # let it get into the middle of another file
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(10)
+    finished = {n for n in names if (out / n / RESULT_NAME).exists()}
+    assert 0 < len(finished) < len(names), finished
+    stamps = {n: (out / n / RESULT_NAME).stat().st_mtime_ns for n in finished}
+    report = run_batch([inputs], out, load_profile("paper-70d"), pipeline=fake_pipeline)
+    statuses = {o.input_path.stem: o.status for o in report.outcomes}
+    assert {n for n, s in statuses.items() if s == "skipped"} == finished
+    assert {n for n, s in statuses.items() if s == "done"} == set(names) - finished
+    assert {n: (out / n / RESULT_NAME).stat().st_mtime_ns for n in finished} == stamps
+    for name in names:
+        assert files_under(out / name) == FULL_SET   # no half-written or temporary files survive
