@@ -134,11 +134,12 @@ class AlignmentCost:
     def per_pixel(self, disparity_px: np.ndarray, origin_xy: tuple[int, int] = (0, 0)) -> np.ndarray:
         """Cost map for a disparity map on a crop of the planes starting at `origin_xy`."""
         height, width = disparity_px.shape
-        ys, xs = np.mgrid[0:height, 0:width].astype(np.float32)
+        xs = np.arange(width, dtype=np.float32)[None, :] + np.float32(origin_xy[0])
+        ys = np.arange(height, dtype=np.float32)[:, None] + np.float32(origin_xy[1])
         channels = []
         for c in range(3):
-            map_x = xs + np.float32(origin_xy[0]) + disparity_px * np.float32(self.shifts[c, 0])
-            map_y = ys + np.float32(origin_xy[1]) + disparity_px * np.float32(self.shifts[c, 1])
+            map_x = xs + disparity_px * np.float32(self.shifts[c, 0])
+            map_y = ys + disparity_px * np.float32(self.shifts[c, 1])
             channels.append(cv2.remap(self.band[c], map_x, map_y, self.interpolation, borderMode=cv2.BORDER_REPLICATE))
         return self._measure(channels)
 

@@ -98,13 +98,20 @@ def evaluate_scene(truth: dict, truth_labels: np.ndarray, result: DepthResult, o
             rows.append(ObjectRow(label, obj["name"], float(obj["inter_object_depth_mm"]), estimates))
             continue
         labels_ab = label.split("-") if "-" in label else [label + "0", label + "1"]
-        for (band, x, y), end_label, key in zip(_end_points(mask, slant["axis"]), labels_ab,
-                                                 ("from_inter_object_depth_mm", "to_inter_object_depth_mm")):
+        scale_in = truth_labels.shape[1] / width          # input (truth-raster) px per result px
+        extent = slant.get("extent_px")
+        for end, ((band, x, y), end_label, key) in enumerate(zip(
+                _end_points(mask, slant["axis"]), labels_ab,
+                ("from_inter_object_depth_mm", "to_inter_object_depth_mm"))):
             estimates = {}
             if region is not None:
                 a, b, c = region.slant if region.slant is not None else (0.0, 0.0, region.disparity_px)
                 s = result.pixel_scale
                 xi, yi = (x + 0.5) * s - 0.5, (y + 0.5) * s - 0.5
+                if extent is not None:
+                    # the true distance holds at the end of the extent: evaluate the plane exactly there
+                    at = float(extent[end]) * s / scale_in + 0.5 * (s / scale_in - 1.0)
+                    xi, yi = (at, yi) if slant["axis"] == "x" else (xi, at)
                 estimates["ours"] = _depth_from_disparity(a * xi + b * yi + c, optics)
             else:
                 estimates["ours"] = float("nan")
@@ -113,14 +120,22 @@ def evaluate_scene(truth: dict, truth_labels: np.ndarray, result: DepthResult, o
             rows.append(ObjectRow(end_label, f"{obj['name']} ({'near' if 'from' in key else 'far'} end)",
                                   float(slant[key]), estimates))
     true_count = len(truth["objects"]) + (1 if truth.get("background") else 0)
-    # order: every pair of objects with distinct true distances must be ranked the same way
+    # order: every object found in a region of its own (a missing or shared object fails), every pair with
+    # distinct true ranks ranked the same way, and every true occlusion (truth `occludes`) found as one
+    notes = []
     order_ok = len(matched) == len(truth["objects"]) and len(set(matched.values())) == len(matched)
-    distances = {o["id"]: o["distance_mm"] for o in truth["objects"]}
+    if len(matched) < len(truth["objects"]):
+        notes.append(f"{len(truth['objects']) - len(matched)} object(s) not found")
+    ranks = {o["id"]: o["order"] for o in truth["objects"]}
     for i in matched:
         for j in matched:
-            if distances[i] < distances[j] - 1e-6 and by_id[matched[i]].order >= by_id[matched[j]].order:
+            if ranks[i] < ranks[j] and by_id[matched[i]].order >= by_id[matched[j]].order:
                 order_ok = False
-    notes = []
+    for obj in truth["objects"]:
+        for hidden in obj.get("occludes", []):
+            if obj["id"] in matched and hidden in matched and matched[hidden] not in by_id[matched[obj["id"]]].occludes:
+                order_ok = False
+                notes.append(f"occlusion {obj['id']} over {hidden} not found")
     if len(set(matched.values())) < len(matched):
         notes.append("two objects fell into one region")
     return SceneEvaluation(truth["scene"], rows, true_count, len(result.regions), order_ok, seconds, notes)

@@ -164,7 +164,7 @@ def run_pipeline(planes: np.ndarray, aperture: FilterAperture, optics: MCAOptics
         init = {r.id: rescale_plane(r.plane, float(factor)) for r in sketch.regions}
         slanted = {r.id: r.slanted for r in sketch.regions}
         refine = params.refine
-        refine = RefineParams(**{**refine.__dict__, "search_radius_px": max(refine.search_radius_px, 0.75 * factor)})
+        refine = RefineParams(**{**refine.__dict__, "search_radius_px": max(refine.search_radius_px, 0.5 * factor)})
         planes_proc, dips = refine_regions(planes, aperture, labels_full, weights_full, init, slanted, refine)
         centroids = {r.id: ((r.centroid_xy[0] + 0.5) * factor - 0.5, (r.centroid_xy[1] + 0.5) * factor - 0.5)
                      for r in sketch.regions}
@@ -178,17 +178,26 @@ def run_pipeline(planes: np.ndarray, aperture: FilterAperture, optics: MCAOptics
 
     # --- depth ---------------------------------------------------------------------------------------------------
     with timer.stage("depth"):
-        ys, xs = np.mgrid[0:height, 0:width].astype(np.float32)
-        model_proc = np.zeros((height, width), np.float32)
-        for i, (a, b, c) in planes_proc.items():
-            sel = labels_full == i
-            model_proc[sel] = a * xs[sel] + b * ys[sel] + c
-        del xs, ys
+        coef = np.zeros((int(labels_full.max()) + 1, 3), np.float32)
+        for i, plane in planes_proc.items():
+            coef[i] = plane
+        model_proc = (coef[labels_full, 0] * np.arange(width, dtype=np.float32)[None, :]
+                      + coef[labels_full, 1] * np.arange(height, dtype=np.float32)[:, None] + coef[labels_full, 2])
         model_in = model_proc * np.float32(pixel_scale)
         raw_in = cv2.resize(disparity.disparity_px, (width, height), interpolation=cv2.INTER_LINEAR) \
             / np.float32(to_analysis)
         confidence_full = cv2.resize(disparity.confidence, (width, height), interpolation=cv2.INTER_LINEAR)
-        depth = depth_map_mm(model_in, optics) if optics is not None else None
+        depth = None
+        if optics is not None:
+            # constant regions: one distance each (a gather); slanted ones pixel by pixel
+            per_region = np.full(coef.shape[0], np.nan, np.float32)
+            for i, (a, b, c) in planes_proc.items():
+                per_region[i] = depth_map_mm(np.array([c * pixel_scale], np.float32), optics)[0]
+            depth = per_region[labels_full]
+            for i, (a, b, c) in planes_proc.items():
+                if a != 0.0 or b != 0.0:
+                    sel = labels_full == i
+                    depth[sel] = depth_map_mm(model_in[sel], optics)
         # order: by disparity, nearest first (smaller disparity = nearer)
         ranked = sorted(planes_in, key=lambda i: centre_disp[i])
         order = {i: rank for rank, i in enumerate(ranked)}
@@ -213,7 +222,8 @@ def run_pipeline(planes: np.ndarray, aperture: FilterAperture, optics: MCAOptics
                 in_focus=(i == focus_id), confidence=float(np.clip(0.5 * r.confidence + 0.5 * dips.get(i, 0.0), 0, 1)),
             ))
         regions.sort(key=lambda r: r.order)
-        record_items = dict(labels=labels_full.astype(np.uint16), disparity_px=model_in, regions=regions)
+        labels16 = labels_full.astype(np.uint16)
+        record_items = dict(labels=labels16, disparity_px=model_in, regions=regions)
         if depth is not None:
             record_items["depth_mm"] = depth
         recorder.record("depth", **record_items)
@@ -224,12 +234,12 @@ def run_pipeline(planes: np.ndarray, aperture: FilterAperture, optics: MCAOptics
         recorder.record("all_in_focus", image=sharp)
     with timer.stage("mpi"):
         by_id = {r.id: r for r in regions}
-        layers = multi_plane_images(sharp, labels_full, [r.id for r in regions],
+        layers = multi_plane_images(sharp, labels16, [r.id for r in regions],
                                     {i: by_id[i].disparity_px for i in by_id},
                                     {i: by_id[i].inter_image_depth_mm for i in by_id},
                                     {i: by_id[i].inter_object_depth_mm for i in by_id})
         recorder.record("mpi", layers=layers)
     timer.timings["total"] = time.perf_counter() - total_start
-    return DepthResult(labels=labels_full.astype(np.uint16), disparity_px=model_in, raw_disparity_px=raw_in,
+    return DepthResult(labels=labels16, disparity_px=model_in, raw_disparity_px=raw_in,
                        confidence=confidence_full, depth_mm=depth, all_in_focus=sharp, regions=regions,
                        focus_region=focus_id, layers=layers, pixel_scale=pixel_scale, timings_s=timer.timings)

@@ -47,15 +47,43 @@ class Region:
     confidence: float = 0.0
 
 
-@dataclass
 class MultiPlaneImage:
-    """One RGBA plane of the 3D images: the perception image at Δd, the accurate image at ΔD."""
+    """One RGBA plane of the 3D images: the perception image at Δd, the accurate image at ΔD.
 
-    region_id: int
-    rgba: np.ndarray                           # (H, W, 4) float32 in [0, 1]
-    inter_image_depth_mm: float | None
-    inter_object_depth_mm: float | None
-    disparity_px: float
+    `rgba` is (H, W, 4) float32 in [0, 1], premultiplied. The pipeline builds it lazily from the shared
+    display image and label map (`source`), so that L planes do not hold L full-size RGBA copies.
+    """
+
+    def __init__(self, region_id: int, rgba: np.ndarray | None, inter_image_depth_mm: float | None,
+                 inter_object_depth_mm: float | None, disparity_px: float, *,
+                 source: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        if rgba is None and source is None:
+            raise ValueError("a MultiPlaneImage needs its rgba array or a (display image, labels) source")
+        self.region_id = region_id
+        self._rgba = rgba
+        self._source = source
+        self.inter_image_depth_mm = inter_image_depth_mm
+        self.inter_object_depth_mm = inter_object_depth_mm
+        self.disparity_px = disparity_px
+
+    @property
+    def rgba(self) -> np.ndarray:
+        if self._rgba is not None:
+            return self._rgba
+        display, labels = self._source  # type: ignore[misc]
+        alpha = (labels == self.region_id).astype(np.float32)
+        rgba = np.empty(labels.shape + (4,), np.float32)
+        np.multiply(display, alpha[..., None], out=rgba[..., :3])
+        rgba[..., 3] = alpha
+        return rgba
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return tuple(self._rgba.shape[:2]) if self._rgba is not None else tuple(self._source[1].shape)  # type: ignore
+
+    def __repr__(self) -> str:
+        return (f"MultiPlaneImage(region_id={self.region_id}, shape={self.shape}, "
+                f"inter_object_depth_mm={self.inter_object_depth_mm}, disparity_px={self.disparity_px})")
 
 
 @dataclass

@@ -249,9 +249,9 @@ def _paper_f(focus: float) -> Scene:
 
 def _paper_g(focus: float) -> Scene:
     knife_shape = knife(0.10, 0.47, 1.40, 0.56, 0.10)
+    slant = Slant(focus - 30.0, focus + 100.0, "x")                  # a flat blade: 1/distance affine along x
     objects = (
-        _object(1, "knife", "steel", focus + 35.0, knife_shape, "gravel", "A-B", 0.1, 0.3,
-                slant=Slant(focus - 30.0, focus + 100.0, "x")),
+        _object(1, "knife", "steel", slant.middle_mm, knife_shape, "gravel", "A-B", 0.1, 0.3, slant=slant),
         _object(2, "orange carrot", "orange", focus + 0.0, carrot(0.70, 0.12, 0.86, 0.92, 0.16), "grass", "C"),
     )
     return Scene("paper-g", "Fig. 4 row g: a knife slanted along the optical axis, its left end 3 cm in front of the "

@@ -67,8 +67,13 @@ class Shape:
 
 @dataclass(frozen=True)
 class Slant:
-    """A layer whose distance varies linearly along an image axis: `from_mm` at the low end of its extent
-    (left for axis "x", top for "y"), `to_mm` at the high end; distances from the lens."""
+    """A flat surface slanted along an image axis: `from_mm` at the low end of its extent (left for axis "x",
+    top for "y"), `to_mm` at the high end; distances from the lens.
+
+    A physically planar surface seen through a lens has its *inverse* distance affine in image
+    coordinates (Z = Z0 + k X with x = f X / Z gives 1/Z = (1 - k x / f) / Z0), hence its MCA disparity
+    too (delta = d_a (d_ls (1/f - 1/u) - 1), affine in 1/u): the distance is interpolated in 1/u.
+    """
 
     from_mm: float
     to_mm: float
@@ -78,6 +83,16 @@ class Slant:
         if self.axis not in ("x", "y"):
             raise ValueError(f"slant axis must be 'x' or 'y', got {self.axis!r}")
 
+    def distance_at_fraction_mm(self, t: np.ndarray | float) -> np.ndarray | float:
+        """Distance at fraction t in [0, 1] of the extent (0 = low end): 1/u linear in t (a true plane)."""
+        inverse = 1.0 / self.from_mm + (1.0 / self.to_mm - 1.0 / self.from_mm) * np.asarray(t, dtype=np.float64)
+        return 1.0 / inverse
+
+    @property
+    def middle_mm(self) -> float:
+        """Distance at the middle of the extent (the harmonic mean of the two ends)."""
+        return float(self.distance_at_fraction_mm(0.5))
+
 
 @dataclass(frozen=True, eq=False)
 class Layer:
@@ -85,7 +100,7 @@ class Layer:
 
     `reflectance` is the linear radiance of the surface in the red, green and blue filter
     bands (1.0 = a white surface); `distance_mm` is from the lens, for a slanted layer the
-    distance at the middle of its extent.
+    distance at the middle of its extent (`Slant.middle_mm` for a true plane); it decides the compositing order.
     """
 
     id: int
@@ -104,7 +119,7 @@ class Layer:
             return self.distance_mm if np.isscalar(position) else np.full_like(position, self.distance_mm)
         low, high = self._extent()
         t = np.clip((np.asarray(position, dtype=np.float64) - low) / max(high - low, 1e-12), 0.0, 1.0)
-        value = self.slant.from_mm + (self.slant.to_mm - self.slant.from_mm) * t
+        value = self.slant.distance_at_fraction_mm(t)
         return float(value) if np.isscalar(position) else value
 
     def _extent(self) -> tuple[float, float]:
@@ -604,11 +619,16 @@ def scene_truth(scene: Scene, optics: SimulationOptics, labels: np.ndarray,
     for layer in sorted(scene.objects, key=lambda o: o.id):
         slant = None
         if layer.slant is not None:
+            low, high = layer._extent()
             slant = {"from_mm": layer.slant.from_mm, "to_mm": layer.slant.to_mm, "axis": layer.slant.axis,
                      "from_inter_object_depth_mm": layer.slant.from_mm - focus,
                      "to_inter_object_depth_mm": layer.slant.to_mm - focus,
                      "from_disparity_px": optics.disparity_px(layer.slant.from_mm),
-                     "to_disparity_px": optics.disparity_px(layer.slant.to_mm)}
+                     "to_disparity_px": optics.disparity_px(layer.slant.to_mm),
+                     # where from_mm and to_mm hold: the ends of the extent along the axis, mosaic pixel
+                     # coordinates; in between 1/distance and the disparity are affine (a plane)
+                     "extent_px": [low * optics.height_px - 0.5, high * optics.height_px - 0.5],
+                     "model": "plane"}
         estimate = optics.mca.from_distance(layer.distance_mm)
         objects.append({
             "id": layer.id,

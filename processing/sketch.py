@@ -31,7 +31,7 @@ from processing.disparity import DisparityMap, warp_channels
 class SketchParams:
     """Parameters of the decomposition; lengths in analysis-grid pixels."""
 
-    superpixel_px: int = 14                 # typical superpixel side
+    superpixel_px: int = 14                 # typical superpixel side (on grids up to 0.3 MP; grows beyond)
     slic_compactness: float = 1.0
     disparity_weight: float = 0.6           # SLIC feature units per pixel of disparity
     chroma_threshold: float = 0.045         # chromaticity distance that separates two colours
@@ -40,6 +40,8 @@ class SketchParams:
     min_region_fraction: float = 0.015      # smaller regions are absorbed by a neighbour
     sliver_thickness_px: float = 6.0        # thinner regions (2 area / perimeter) are rims, absorbed too ...
     sliver_max_fraction: float = 0.04       # ... up to this size
+    join_disparity_px: float = 1.0          # pieces of one surface seen on both sides of an occluder: models
+                                            # agreeing this well (each at the other's centroid) are joined
     slant_min_span_px: float = 1.2          # a plane is kept only if it spans at least this much disparity
     slant_min_gain: float = 0.5             # ... and explains this fraction of the constant model's residual
     focus_tolerance_px: float = 0.6         # |disparity| below which a region counts as in focus
@@ -141,50 +143,44 @@ def boundary_pixels(labels: np.ndarray, first: int, second: int, width_px: int =
     return ((cv2.dilate(a, kernel) & b) | (cv2.dilate(b, kernel) & a)).astype(bool)
 
 
-@dataclass
 class _Stats:
-    """Mergeable sufficient statistics of a region (superpixel-level points for the disparity plane)."""
+    """Mergeable sufficient statistics of a region (superpixel-level points for the disparity plane).
 
-    pixels: float
-    rgb: np.ndarray                # sum of linear RGB
-    log_lum: float                 # sum of log luminance
-    sw: float                      # plane least squares: sums over superpixel points weighted by w
-    sx: float
-    sy: float
-    sd: float
-    sxx: float
-    syy: float
-    sxy: float
-    sxd: float
-    syd: float
-    sdd: float
-    members: list[int]
+    Plain Python floats with the derived values (chromaticity, mean log luminance, ridge plane) computed
+    once per node: the greedy merge evaluates the cost of every edge of a grown region again.
+    """
+
+    __slots__ = ("pixels", "r", "g", "b", "log_lum", "sums", "count", "cr", "cg", "mean_lum", "plane_")
+
+    def __init__(self, pixels: float, rgb: tuple[float, float, float], log_lum: float,
+                 sums: tuple[float, ...], count: int) -> None:
+        self.pixels, self.log_lum, self.sums, self.count = pixels, log_lum, sums, count
+        self.r, self.g, self.b = rgb
+        total = self.r + self.g + self.b + 1e-9
+        self.cr, self.cg = self.r / total, self.g / total
+        self.mean_lum = log_lum / max(pixels, 1.0)
+        self.plane_ = self.plane(40.0 / max(count, 1) ** 0.5)
 
     def merged(self, other: "_Stats") -> "_Stats":
-        return _Stats(self.pixels + other.pixels, self.rgb + other.rgb, self.log_lum + other.log_lum,
-                      *(getattr(self, k) + getattr(other, k) for k in
-                        ("sw", "sx", "sy", "sd", "sxx", "syy", "sxy", "sxd", "syd", "sdd")),
-                      self.members + other.members)
+        return _Stats(self.pixels + other.pixels, (self.r + other.r, self.g + other.g, self.b + other.b),
+                      self.log_lum + other.log_lum, tuple(u + v for u, v in zip(self.sums, other.sums)),
+                      self.count + other.count)
 
     @property
-    def chroma(self) -> np.ndarray:
-        total = float(self.rgb.sum()) + 1e-9
-        return self.rgb[:2] / total
-
-    @property
-    def mean_log_lum(self) -> float:
-        return self.log_lum / max(self.pixels, 1.0)
+    def sw(self) -> float:
+        return self.sums[0]
 
     def plane(self, ridge_px: float) -> tuple[float, float, float]:
         """Weighted least squares plane, slopes shrunk toward 0 (ridge of a region of size `ridge_px`)."""
-        if self.sw <= 0:
+        sw, sx, sy, sd, sxx, syy, sxy, sxd, syd, _ = self.sums
+        if sw <= 0:
             return (0.0, 0.0, 0.0)
-        mx, my, md = self.sx / self.sw, self.sy / self.sw, self.sd / self.sw
-        cxx = self.sxx / self.sw - mx * mx + ridge_px ** 2
-        cyy = self.syy / self.sw - my * my + ridge_px ** 2
-        cxy = self.sxy / self.sw - mx * my
-        cxd = self.sxd / self.sw - mx * md
-        cyd = self.syd / self.sw - my * md
+        mx, my, md = sx / sw, sy / sw, sd / sw
+        cxx = sxx / sw - mx * mx + ridge_px ** 2
+        cyy = syy / sw - my * my + ridge_px ** 2
+        cxy = sxy / sw - mx * my
+        cxd = sxd / sw - mx * md
+        cyd = syd / sw - my * md
         det = cxx * cyy - cxy * cxy
         if det <= 1e-12:
             return (0.0, 0.0, md)
@@ -199,21 +195,22 @@ def _superpixel_stats(superpixels: np.ndarray, count: int, aligned: np.ndarray, 
     pixels = np.bincount(flat, minlength=count).astype(np.float64)
     rgb = np.stack([np.bincount(flat, weights=aligned[..., c].ravel(), minlength=count) for c in range(3)], axis=1)
     lum = np.bincount(flat, weights=log_lum.ravel(), minlength=count)
-    ys, xs = np.indices(superpixels.shape)
+    height, width = superpixels.shape
     safe = np.maximum(pixels, 1.0)
-    cx = np.bincount(flat, weights=xs.ravel(), minlength=count) / safe
-    cy = np.bincount(flat, weights=ys.ravel(), minlength=count) / safe
-    d = weighted_median_by_label(superpixels, disparity, confidence, count)
+    xs = np.broadcast_to(np.arange(width, dtype=np.float64)[None, :], (height, width)).ravel()
+    ys = np.broadcast_to(np.arange(height, dtype=np.float64)[:, None], (height, width)).ravel()
+    cx = np.bincount(flat, weights=xs, minlength=count) / safe
+    cy = np.bincount(flat, weights=ys, minlength=count) / safe
+    step = 2 if superpixels.size > 300_000 else 1             # every 4th pixel is plenty for a median
+    d = weighted_median_by_label(superpixels[::step, ::step], disparity[::step, ::step],
+                                 confidence[::step, ::step], count)
     conf = np.bincount(flat, weights=confidence.ravel(), minlength=count)
-    stats = []
-    for i in range(count):
-        w = float(conf[i]) if np.isfinite(d[i]) else 0.0
-        di = float(d[i]) if np.isfinite(d[i]) else 0.0
-        x, y = float(cx[i]), float(cy[i])
-        stats.append(_Stats(float(pixels[i]), rgb[i].astype(np.float64), float(lum[i]),
-                            w, w * x, w * y, w * di, w * x * x, w * y * y, w * x * y, w * x * di, w * y * di,
-                            w * di * di, [i]))
-    return stats
+    w = np.where(np.isfinite(d), conf, 0.0)
+    d = np.where(np.isfinite(d), d, 0.0)
+    sums = np.stack([w, w * cx, w * cy, w * d, w * cx * cx, w * cy * cy, w * cx * cy, w * cx * d, w * cy * d,
+                     w * d * d], axis=1).tolist()
+    rgb_l, pixels_l, lum_l = rgb.tolist(), pixels.tolist(), lum.tolist()
+    return [_Stats(pixels_l[i], tuple(rgb_l[i]), lum_l[i], tuple(sums[i]), 1) for i in range(count)]
 
 
 # --- the sketch -------------------------------------------------------------------------------------------------
@@ -233,9 +230,11 @@ def build_sketch(planes: np.ndarray, aperture: FilterAperture, disparity: Dispar
     lum_scale = 0.05
     features = np.dstack([chroma / params.chroma_threshold, log_lum * (lum_scale / 0.05) * 0.5,
                           smooth * params.disparity_weight]).astype(np.float32)
-    n_segments = max(16, int(height * width / params.superpixel_px ** 2))
+    side = params.superpixel_px * max(1.0, (height * width / 300_000) ** 0.5)   # fewer, larger ones on big grids
+    n_segments = max(16, int(height * width / side ** 2))
     superpixels = slic(features, n_segments=n_segments, compactness=params.slic_compactness, start_label=0,
-                       channel_axis=-1, enforce_connectivity=True, convert2lab=False, sigma=0.5)
+                       channel_axis=-1, enforce_connectivity=True, convert2lab=False, sigma=0.5,
+                       max_num_iter=6)                     # the merge that follows forgives a rougher start
     superpixels = superpixels.astype(np.int32)
     count = int(superpixels.max()) + 1
 
@@ -247,6 +246,11 @@ def build_sketch(planes: np.ndarray, aperture: FilterAperture, disparity: Dispar
     labels = _absorb_small(labels, aligned, disparity, params)
     regions = _fit_regions(labels, aligned, disparity, params)
     occludes, ownership = _occlusion(labels, regions, disparity)
+    joined = _join_across_occluders(labels, regions, occludes, params)
+    if joined is not None:
+        labels = joined
+        regions = _fit_regions(labels, aligned, disparity, params)
+        occludes, ownership = _occlusion(labels, regions, disparity)
     ranked = sorted(regions, key=lambda r: r.disparity_px)
     order = {r.id: rank for rank, r in enumerate(ranked)}
     focus = min(regions, key=lambda r: abs(r.disparity_px)) if regions else None
@@ -254,16 +258,61 @@ def build_sketch(planes: np.ndarray, aperture: FilterAperture, disparity: Dispar
     return Sketch(labels, regions, occludes, ownership, order, focus_id, aligned, superpixels)
 
 
+def _join_across_occluders(labels: np.ndarray, regions: list[SketchRegion], occludes: dict[int, list[int]],
+                           params: SketchParams) -> np.ndarray | None:
+    """One surface cut in two by an object in front of it (a spatula behind a carrot, a slanted knife behind a
+    carrot) is one region of the 2.1D sketch: join regions that do not touch, are both occluded by the same
+    region, have the same colour and whose disparity models agree. Returns new labels, or None if none joined."""
+    by_id = {r.id: r for r in regions}
+    touching = set(adjacency(labels))
+    parent = {r.id: r.id for r in regions}
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            i = parent[i]
+        return i
+
+    def chroma(r: SketchRegion) -> np.ndarray:
+        rgb = np.asarray(r.colour, np.float64)
+        return rgb[:2] / max(float(rgb.sum()), 1e-9)
+
+    def lum(r: SketchRegion) -> float:
+        return float(np.log(sum(r.colour) / 3.0 + 1e-3))
+
+    joined = False
+    for front, backs in occludes.items():
+        for i, a in enumerate(backs):
+            for b in backs[i + 1:]:
+                if (min(a, b), max(a, b)) in touching or root(a) == root(b):
+                    continue
+                ra, rb = by_id[a], by_id[b]
+                if np.linalg.norm(chroma(ra) - chroma(rb)) > params.chroma_threshold or \
+                        abs(lum(ra) - lum(rb)) > params.luminance_threshold:
+                    continue
+                # one model explaining the other piece is enough (a slanted piece predicts a constant one)
+                gap = min(abs(ra.disparity_at(*rb.centroid_xy) - rb.disparity_px),
+                          abs(rb.disparity_at(*ra.centroid_xy) - ra.disparity_px))
+                if gap < params.join_disparity_px:
+                    parent[root(b)] = root(a)
+                    joined = True
+    if not joined:
+        return None
+    lookup = np.zeros(int(labels.max()) + 1, np.int32)
+    roots = sorted({root(i) for i in parent})
+    number = {r: k + 1 for k, r in enumerate(roots)}
+    for i in parent:
+        lookup[i] = number[root(i)]
+    return lookup[labels]
+
+
 def _merge_cost(a: _Stats, b: _Stats, boundary_xy: tuple[float, float], params: SketchParams
                 ) -> float:
     """Largest of the colour and disparity distances, each in units of its threshold (merge when < 1)."""
-    chroma = float(np.linalg.norm(a.chroma - b.chroma)) / params.chroma_threshold
-    lum = abs(a.mean_log_lum - b.mean_log_lum) / params.luminance_threshold
-    ridge_a = 40.0 / np.sqrt(max(len(a.members), 1))
-    ridge_b = 40.0 / np.sqrt(max(len(b.members), 1))
+    chroma = ((a.cr - b.cr) ** 2 + (a.cg - b.cg) ** 2) ** 0.5 / params.chroma_threshold
+    lum = abs(a.mean_lum - b.mean_lum) / params.luminance_threshold
     x, y = boundary_xy
-    if a.sw > 0 and b.sw > 0:
-        pa, pb = a.plane(ridge_a), b.plane(ridge_b)
+    if a.sums[0] > 0 and b.sums[0] > 0:
+        pa, pb = a.plane_, b.plane_
         da = pa[0] * x + pa[1] * y + pa[2]
         db = pb[0] * x + pb[1] * y + pb[2]
         disparity = abs(da - db) / params.disparity_threshold_px
@@ -391,8 +440,18 @@ def _absorb_small(labels: np.ndarray, aligned: np.ndarray, disparity: DisparityM
                 return True
         return False
 
+    def distinct(i: int) -> bool:
+        """A piece of an object cut off by an occluder: clearly at another depth than everything it touches
+        (it is joined with the rest of its object later, see `_join_across_occluders`)."""
+        if not np.isfinite(dmed[i]) or sizes[i] < 0.4 * params.min_region_fraction * total:
+            return False
+        return all(np.isfinite(dmed[j]) and abs(dmed[i] - dmed[j]) > 2.0 * params.disparity_threshold_px
+                   for j in neighbours[i])
+
     def is_small(i: int) -> bool:
         thickness = 2.0 * sizes[i] / max(perimeter[i], 1.0)
+        if thickness >= 3.0 * params.sliver_thickness_px and distinct(i):
+            return False
         return sizes[i] > 0 and (sizes[i] < params.min_region_fraction * total or (
             sizes[i] < params.sliver_max_fraction * total and (
                 thickness < params.sliver_thickness_px or fragment(i))))
@@ -483,24 +542,43 @@ def interior_weights(labels: np.ndarray, confidence: np.ndarray, margin_px: int)
 
 
 def _fit_regions(labels: np.ndarray, aligned: np.ndarray, disparity: DisparityMap,
-                 params: SketchParams) -> list[SketchRegion]:
+                 params: SketchParams, max_samples: int = 20_000) -> list[SketchRegion]:
+    """Per region: centroid and colour over all its pixels (bincount), the disparity model from at most
+    `max_samples` of its pixels (an even subsample: the robust fits need no more)."""
     weights = interior_weights(labels, disparity.confidence, 5)
+    height, width = labels.shape
+    flat = labels.ravel()
+    count = int(flat.max()) + 1
+    sizes = np.bincount(flat, minlength=count)
+    xs_all = np.broadcast_to(np.arange(width, dtype=np.float64)[None, :], (height, width)).ravel()
+    ys_all = np.broadcast_to(np.arange(height, dtype=np.float64)[:, None], (height, width)).ravel()
+    safe = np.maximum(sizes, 1)
+    cxs = np.bincount(flat, weights=xs_all, minlength=count) / safe
+    cys = np.bincount(flat, weights=ys_all, minlength=count) / safe
+    colours = np.stack([np.bincount(flat, weights=aligned[..., c].ravel(), minlength=count) for c in range(3)],
+                       axis=1) / safe[:, None]
+    order = np.argsort(flat, kind="stable")
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    d_all = disparity.disparity_px.ravel()
+    w_all = weights.ravel()
+    c_all = disparity.confidence.ravel()
     regions = []
-    ys, xs = np.indices(labels.shape)
-    for region_id in range(1, int(labels.max()) + 1):
-        mask = labels == region_id
-        n = int(mask.sum())
+    for region_id in range(1, count):
+        n = int(sizes[region_id])
         if n == 0:
             continue
-        x, y = xs[mask].astype(np.float64), ys[mask].astype(np.float64)
-        d = disparity.disparity_px[mask].astype(np.float64)
-        w = weights[mask].astype(np.float64)
+        members = order[starts[region_id]:starts[region_id + 1]]
+        if n > max_samples:
+            members = members[::int(np.ceil(n / max_samples))]
+        x, y = xs_all[members], ys_all[members]
+        d = d_all[members].astype(np.float64)
+        w = w_all[members].astype(np.float64)
         if w.sum() < 1e-6:
-            w = disparity.confidence[mask].astype(np.float64) + 1e-6
-        cx, cy = float(x.mean()), float(y.mean())
+            w = c_all[members].astype(np.float64) + 1e-6
+        cx, cy = float(cxs[region_id]), float(cys[region_id])
         plane, slanted, confidence = select_model(x - cx, y - cy, d, w, params)
         a, b, c = plane
-        colour = tuple(float(v) for v in aligned[mask].mean(axis=0))
+        colour = tuple(float(v) for v in colours[region_id])
         regions.append(SketchRegion(region_id, n, (cx, cy), (a, b, c - a * cx - b * cy), slanted,
                                     confidence, colour))  # type: ignore[arg-type]
     return regions
@@ -583,23 +661,24 @@ def occlusion_aware_weights(labels: np.ndarray, confidence: np.ndarray, occludes
 
 @dataclass(frozen=True)
 class RefineParams:
-    """Sub-pixel refinement of region models on the processing grid."""
+    """Sub-pixel refinement of region models on the processing grid (or one Gaussian-pyramid level of it)."""
 
     window_px: int = 9
     noise_floor: float = 2e-3
-    search_radius_px: float = 2.0       # +- around the analysis estimate, processing px
-    coarse_step_px: float = 0.5
-    fine_step_px: float = 0.1
-    max_pixels: int = 600_000           # a region is refined on a coarser level beyond this many pixels
-    band_sigma_px: tuple[float, float] = (2.0, 10.0)   # band-pass at every level: band-limits, so that the
+    search_radius_px: float = 1.5       # +- around the sketch's estimate, processing px
+    coarse_step_px: float = 0.5         # first pass: offsets this far apart (processing px) ...
+    fine_step_px: float = 0.1           # ... second pass around each region's first-pass centre
+    fine_count: int = 4                 # second pass: offsets -fine_count..+fine_count fine steps
+    max_pixels: int = 1_400_000         # the refinement runs on the first pyramid level at most this large
+    band_sigma_px: tuple[float, float] = (2.0, 10.0)   # band-pass at the level: band-limits, so that the
                                                       # linear interpolation does not pull toward whole pixels
     cell_px: int = 48                   # side of the cells whose minima are fitted robustly (processing px)
 
 
 def _parabola_min(xs: np.ndarray, ys: np.ndarray) -> float:
+    from processing.disparity import subpixel_minimum
     i = int(np.argmin(ys))
     if 0 < i < len(xs) - 1:
-        from processing.disparity import subpixel_minimum
         step = xs[i + 1] - xs[i]
         return float(xs[i] + step * subpixel_minimum(np.array(ys[i - 1]), np.array(ys[i]), np.array(ys[i + 1])))
     return float(xs[i])
@@ -609,12 +688,170 @@ def refine_regions(planes: np.ndarray, aperture: FilterAperture, labels: np.ndar
                    planes_px: dict[int, tuple[float, float, float]], slanted: dict[int, bool],
                    params: RefineParams = RefineParams()) -> tuple[dict[int, tuple[float, float, float]],
                                                                    dict[int, float]]:
-    """Refine each region's disparity model (processing px) by minimising the colour-line cost summed
-    over the region's weighted pixels, first over a coarse grid of offsets, then a fine one with a
-    parabola fit. Slanted regions also get their slope refit from tiles along the slope.
+    """Refine every region's disparity model (processing px) at once by minimising the colour-line cost
+    summed over its weighted pixels.
+
+    All regions share one per-pixel model map, so each candidate offset costs one warp of the whole
+    level (a Gaussian-pyramid level of at most `max_pixels`); the costs are reduced per (region, cell)
+    with one bincount. Pass 1 samples offsets `coarse_step_px` apart over +-`search_radius_px`, pass 2
+    `fine_step_px` apart around pass 1's model. Each cell gets a parabola minimum; a robust constant
+    (or, for slanted regions, a robust plane) over the cells, weighted by curvature x weight, is the
+    region's model: cells contaminated by another object (mislabelled pixels, occluder edges) are rejected.
 
     Returns the refined planes and, per region, the depth of the cost dip (a confidence in [0, 1]).
     """
+    from processing.disparity import AlignmentCost, band_pass, subpixel_minimum
+
+    ids = sorted(planes_px)
+    if not ids:
+        return {}, {}
+    level = 0
+    while planes.shape[0] * planes.shape[1] / 4 ** level > params.max_pixels:
+        level += 1
+    if level == 0:
+        # small grids: per-region crops are affordable and keep the most pixels of small objects
+        return _refine_per_region(planes, aperture, labels, weights, planes_px, slanted, params)
+    reduced = planes
+    for _ in range(level):
+        reduced = cv2.pyrDown(reduced)      # anti-aliased: aliasing would not move with the disparity
+    height, width = reduced.shape[:2]
+    factor = 2.0 ** level
+    if level:
+        llabels = cv2.resize(labels.astype(np.int32), (width, height), interpolation=cv2.INTER_NEAREST)
+        lweights = cv2.resize(weights.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
+    else:
+        llabels, lweights = labels.astype(np.int32), weights.astype(np.float32)
+    count = len(ids)
+    lut = np.full(max(int(llabels.max()), max(ids)) + 1, count, np.int64)
+    lut[ids] = np.arange(count)
+    index = lut[llabels]                                  # region index per pixel, `count` = not refined
+    lplanes = np.array([rescale_plane(planes_px[i], 1.0 / factor) for i in ids] + [(0.0, 0.0, 0.0)])
+    xs = np.arange(width, dtype=np.float32)[None, :]
+    ys = np.arange(height, dtype=np.float32)[:, None]
+
+    def model_map(coef: np.ndarray, where: np.ndarray | None = None) -> np.ndarray:
+        c32 = coef.astype(np.float32)
+        at = index if where is None else where
+        return c32[at, 0] * xs + c32[at, 1] * ys + c32[at, 2]
+
+    radius = params.search_radius_px / factor
+    model = model_map(lplanes)
+    # windows reaching past the image border see replicated pixels, not the scene: leave them out
+    border = params.window_px // 2 + int(np.ceil(float(np.abs(model).max()) * 0.75 + radius)) + 1
+    inside = np.zeros((height, width), bool)
+    inside[border:-border or None, border:-border or None] = True
+    sizes = np.bincount(index.ravel(), minlength=count + 1)[:count]
+    inner = np.bincount(index[inside], minlength=count + 1)[:count]
+    keep_all = inner < 0.1 * sizes                        # tiny regions at the border keep their border pixels
+    use = inside | keep_all[np.minimum(index, count - 1)] & (index < count)
+    # Every pixel is warped with one region's model, so a window that straddles a boundary would mix two
+    # models. An occluding contour moves with the occluder: each pixel takes the model of the nearest region
+    # within half a window (a min filter over the regions' depth ranks), so the occluder's windows see its
+    # model on both sides of its contour; a pixel counts for its own region only when it kept its own model.
+    mean_model = np.bincount(index.ravel(), weights=model.ravel(), minlength=count + 1)[:count] / np.maximum(sizes, 1)
+    rank_of = np.empty(count + 1, np.int64)
+    rank_of[np.argsort(mean_model, kind="stable")] = np.arange(count)
+    rank_of[count] = count
+    by_rank = np.append(np.argsort(mean_model, kind="stable"), count)
+    reach_px = params.window_px // 2 + 1
+    kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * reach_px + 1, 2 * reach_px + 1))
+    owner = by_rank[cv2.erode(rank_of[index].astype(np.uint16), kernel, borderType=cv2.BORDER_REPLICATE)]
+    clear = owner == index
+    index_model = owner
+    model = model_map(lplanes, index_model)
+    w = np.where(use & clear & (index < count), lweights, 0.0).astype(np.float32)
+    wsum_region = np.bincount(index.ravel(), weights=w.ravel(), minlength=count + 1)[:count]
+    empty = wsum_region < 1e-6                            # no confident pixel: every pixel counts
+    if empty.any():
+        fill = empty[np.minimum(index, count - 1)] & (index < count) & use
+        w[fill] = 1.0
+    cell = max(8, int(params.cell_px / factor))
+    cells_x = (width + cell - 1) // cell
+    cells_y = (height + cell - 1) // cell
+    n_cells = cells_x * cells_y
+    cell_id = (np.arange(height)[:, None] // cell) * cells_x + np.arange(width)[None, :] // cell
+    bins = (np.where(w > 0, index, count) * n_cells + cell_id).ravel()
+    n_bins = (count + 1) * n_cells
+    wflat = w.ravel()
+    wsum = np.bincount(bins, weights=wflat, minlength=n_bins).reshape(count + 1, n_cells)[:count]
+    cxs = np.bincount(bins, weights=(w * xs).ravel(), minlength=n_bins).reshape(count + 1, n_cells)[:count]
+    cys = np.bincount(bins, weights=(w * ys).ravel(), minlength=n_bins).reshape(count + 1, n_cells)[:count]
+    cxs /= np.maximum(wsum, 1e-12)
+    cys /= np.maximum(wsum, 1e-12)
+    cost_model = AlignmentCost(band_pass(reduced, *params.band_sigma_px), aperture, params.window_px,
+                               params.noise_floor)
+
+    def curves(base: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+        """(count, n_cells, K) summed weighted cost at each offset added to the model map `base`."""
+        out = np.empty((count, n_cells, len(offsets)))
+        for k, delta in enumerate(offsets):
+            cost = cost_model.per_pixel(base + np.float32(delta))
+            out[:, :, k] = np.bincount(bins, weights=(cost * w).ravel(), minlength=n_bins).reshape(
+                count + 1, n_cells)[:count]
+        return out
+
+    def fit(coef: np.ndarray, offsets: np.ndarray, cells: np.ndarray) -> np.ndarray:
+        """New plane per region from the cells' parabola minima (relative to `coef`)."""
+        k = len(offsets)
+        best = np.argmin(cells, axis=2)
+        ok = (best > 0) & (best < k - 1) & (wsum > 0)
+        idx = np.clip(best, 1, k - 2)
+        before = np.take_along_axis(cells, (idx - 1)[..., None], axis=2)[..., 0]
+        at = np.take_along_axis(cells, idx[..., None], axis=2)[..., 0]
+        after = np.take_along_axis(cells, (idx + 1)[..., None], axis=2)[..., 0]
+        step = float(offsets[1] - offsets[0])
+        minima = offsets[idx] + step * subpixel_minimum(before, at, after)
+        curvature = np.maximum(before - 2 * at + after, 0.0) / np.maximum(wsum, 1e-9)
+        cell_w = np.where(ok, np.sqrt(wsum) * np.sqrt(curvature), 0.0)
+        new = coef.copy()
+        for r, region_id in enumerate(ids):
+            a, b, c = coef[r]
+            cw = cell_w[r]
+            used = cw > 0
+            if not used.any():
+                total = cells[r].sum(axis=0)
+                new[r] = (a, b, c + _parabola_min(offsets, total))
+            elif slanted.get(region_id, False) and np.count_nonzero(used) >= 4:
+                mx = float(np.average(cxs[r][used], weights=cw[used]))
+                my = float(np.average(cys[r][used], weights=cw[used]))
+                fitted, _ = robust_plane(cxs[r][used] - mx, cys[r][used] - my, minima[r][used], cw[used])
+                new[r] = (a + fitted[0], b + fitted[1], c + fitted[2] - fitted[0] * mx - fitted[1] * my)
+            else:
+                value, _ = robust_constant(minima[r][used], cw[used])
+                new[r] = (a, b, c + value)
+        return new
+
+    coarse_step = params.coarse_step_px / factor
+    steps = int(np.ceil(radius / coarse_step - 1e-9)) if radius > 0 else 0
+    coarse = np.arange(-steps, steps + 1) * coarse_step
+    coarse_cells = curves(model, coarse)
+    total = coarse_cells.sum(axis=1) / np.maximum(wsum.sum(axis=1), 1e-9)[:, None]
+    # robust centre per region: weighted median of its cells' coarse minima (a cell alone is noisy)
+    coef = lplanes[:count].copy()
+    cell_best = coarse[np.argmin(coarse_cells, axis=2)]
+    for r in range(count):
+        used = wsum[r] > 0.05 * max(float(wsum[r].max()), 1e-12)
+        if used.any():
+            order = np.argsort(cell_best[r][used])
+            cum = np.cumsum(wsum[r][used][order])
+            coef[r, 2] += float(cell_best[r][used][order][np.searchsorted(cum, cum[-1] / 2)])
+    fine = np.arange(-params.fine_count, params.fine_count + 1) * (params.fine_step_px / factor)
+    if params.fine_count > 0:
+        coef = fit(coef, fine, curves(model_map(np.vstack([coef, [(0.0, 0.0, 0.0)]]), index_model), fine))
+    results, dips = {}, {}
+    for r, region_id in enumerate(ids):
+        mean = float(total[r].mean())
+        dips[region_id] = float(np.clip((mean - float(total[r].min())) / max(mean, 1e-6) * 3.0, 0.0, 1.0))
+        results[region_id] = rescale_plane(tuple(float(v) for v in coef[r]), factor)
+    return results, dips
+
+
+def _refine_per_region(planes: np.ndarray, aperture: FilterAperture, labels: np.ndarray, weights: np.ndarray,
+                   planes_px: dict[int, tuple[float, float, float]], slanted: dict[int, bool],
+                   params: RefineParams = RefineParams()) -> tuple[dict[int, tuple[float, float, float]],
+                                                                   dict[int, float]]:
+    """`refine_regions` for grids that need no pyramid level (at most `max_pixels`): one crop per region with
+    the region's own model extended over the crop (its occluding contours keep their windows whole)."""
     from processing.disparity import AlignmentCost, band_pass
 
     pyramid = {0: (band_pass(planes, *params.band_sigma_px), labels, weights)}
