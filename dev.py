@@ -3,8 +3,8 @@
 
 Needs only Python >= 3.11 with pip. Creates `.venv` when missing, installs the
 project with its test extras whenever pyproject.toml changed, and on Debian
-(as root) installs the two system tools the tests use as independent
-references: exiftool and gphoto2.
+(as root) installs the system tools the tests use as independent
+references: exiftool, gphoto2 and shellcheck.
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent
 VENV = ROOT / ".venv"
 BIN = VENV / "bin"
-SYSTEM_TOOLS = {"exiftool": "libimage-exiftool-perl", "gphoto2": "gphoto2"}
+SYSTEM_TOOLS = {"exiftool": "libimage-exiftool-perl", "gphoto2": "gphoto2", "shellcheck": "shellcheck"}
 
 
 def _say(message: str) -> None:

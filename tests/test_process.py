@@ -227,7 +227,6 @@ def test_cli_usage_errors(tmp_path):
 
 @pytest.mark.parametrize("maker, suffix", [(make_cr2, ".CR2"), (make_tiff, ".tiff"), (make_png, ".png")])
 def test_cli_full_set_with_the_real_pipeline(tmp_path, maker, suffix):
-    pytest.importorskip("processing.pipeline", reason="processing/pipeline.py has not landed yet")
     source = maker(tmp_path / f"shot{suffix}")
     result = CliRunner().invoke(app, ["process", str(source), "--out", str(tmp_path / "out")])
     assert result.exit_code == 0, result.output
@@ -253,7 +252,6 @@ def test_downscaled_raw_spans_the_whole_sensor(tmp_path, profile):
 
 
 def test_cli_profile_none_gives_disparities_only(tmp_path):
-    pytest.importorskip("processing.pipeline", reason="processing/pipeline.py has not landed yet")
     source = make_png(tmp_path / "shot.png")
     result = CliRunner().invoke(app, ["process", str(source), "--out", str(tmp_path / "out"), "--profile", "none"])
     assert result.exit_code == 0, result.output

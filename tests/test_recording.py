@@ -405,16 +405,7 @@ def test_process_file_records_a_verifiable_recording(tmp_path: Path, maker, name
     assert "Pinhole" in entities["/world/camera"]
 
 
-def _real_pipeline_available() -> bool:
-    try:
-        from processing.pipeline import run_pipeline  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
 @pytest.mark.slow
-@pytest.mark.skipif(not _real_pipeline_available(), reason="processing.pipeline is not there yet")
 @pytest.mark.parametrize("maker,name,size", [(make_cr2, "paper-c.CR2", (192, 288)), (make_png, "scene.png", (96, 144))])
 def test_real_pipeline_recording_verifies(tmp_path: Path, maker, name: str, size: tuple[int, int]) -> None:
     from capture.pipeline_app import process_file

@@ -63,7 +63,6 @@ def test_same_colour_objects_exist() -> None:
 
 
 def test_mca_simulate_writes_the_files(tmp_path) -> None:
-    pytest.importorskip("capture.cr2")
     from typer.testing import CliRunner
 
     from capture.cli import app

@@ -153,11 +153,9 @@ def test_truth_is_consistent_with_the_optics() -> None:
 
 
 def test_cr2_round_trip_returns_the_planes(tmp_path) -> None:
-    try:
-        from capture.raw import read_raw
-        from capture.simulated_shots import render_scene, write_capture
-    except ImportError as exc:          # pragma: no cover - only while capture.cr2/raw are being written
-        pytest.skip(f"capture.cr2 / capture.raw not importable yet: {exc}")
+    from capture.raw import read_raw
+    from capture.simulated_shots import render_scene, write_capture
+
     capture = render_scene("paper-f", PROFILE, size=0.125, seed=1)
     paths = write_capture(capture, PROFILE, tmp_path)
     frame = read_raw(paths["cr2"])
