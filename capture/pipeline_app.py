@@ -114,6 +114,14 @@ def bayer_channel_offsets_px(cfa_pattern: str | None) -> tuple[tuple[float, floa
 def upsample_nearest(array: np.ndarray, pixel_scale: float, size_px: tuple[int, int]) -> np.ndarray:
     """Nearest-neighbour resampling of a processing-resolution map to the input size (width, height)."""
     height, width = array.shape[:2]
+    factor = int(pixel_scale)
+    if (factor == pixel_scale and factor in (2, 4) and array.ndim == 2 and array.dtype in (np.uint16, np.float32)
+            and size_px[0] <= width * factor and size_px[1] <= height * factor):
+        import cv2      # pixel i takes source pixel i // factor, exactly as below, without the index arrays
+
+        enlarged = cv2.resize(np.ascontiguousarray(array), (width * factor, height * factor),
+                              interpolation=cv2.INTER_NEAREST)
+        return enlarged[:size_px[1], :size_px[0]]
     rows = np.minimum(((np.arange(size_px[1]) + 0.5) / pixel_scale).astype(np.intp), height - 1)
     cols = np.minimum(((np.arange(size_px[0]) + 0.5) / pixel_scale).astype(np.intp), width - 1)
     return array[rows[:, None], cols[None, :]]
@@ -156,19 +164,67 @@ def scene_points(depth_mm: np.ndarray, colours_rgb8: np.ndarray, pixel_scale: fl
     return points.astype(np.float32), colours_rgb8[rows, cols]
 
 
-def _layer_rgba8(rgba: np.ndarray) -> np.ndarray:
-    """A float RGBA layer (linear RGB, alpha in [0, 1]) as 8-bit sRGB with 8-bit alpha."""
-    alpha = np.round(np.clip(np.nan_to_num(rgba[..., 3]), 0.0, 1.0) * 255.0).astype(np.uint8)
-    return np.dstack([outputs.linear_to_srgb8(rgba[..., :3]), alpha])
+def _alpha8(alpha: np.ndarray) -> np.ndarray:
+    """Coverage in [0, 1] to 8-bit alpha, rounded; NaN as 0 (fmax/fmin drop NaN)."""
+    clipped = np.fmin(np.fmax(np.asarray(alpha, np.float32), np.float32(0.0)), np.float32(1.0))
+    return np.round(clipped * np.float32(255.0)).astype(np.uint8)
 
 
-def region_quads(result: DepthResult, layers_rgba8: dict[int, np.ndarray], all_in_focus8: np.ndarray,
-                 camera: Pinhole) -> list[outputs.TexturedQuad]:
-    """One quad per region with a distance, front to back: its bounding box back-projected at its distance."""
+def _box_of(mask: np.ndarray) -> tuple[slice, slice] | None:
+    """The bounding box of a 2-D mask's True pixels, None when there is none."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    if rows.size == 0:
+        return None
+    cols = np.flatnonzero(mask[rows[0]:rows[-1] + 1].any(axis=0))
+    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
+
+
+def _layer_rgba8(layer: Any, srgb8_of: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """A layer (premultiplied linear RGB, alpha in [0, 1]) as 8-bit sRGB with 8-bit alpha.
+
+    Only the bounding box of the layer's non-zero pixels is converted; outside it every byte is 0,
+    as the conversion gives for 0. A layer the pipeline built lazily from a (display image, labels)
+    source (`processing.result.MultiPlaneImage.rgba`: display x mask, alpha = mask) takes its colours
+    from the display image converted once for all layers (`srgb8_of`, cached by the caller), instead
+    of a full-size float RGBA array per layer; sRGB of display x 1 is sRGB of display, of x 0 is 0.
+    """
+    source = getattr(layer, "_source", None)
+    if getattr(layer, "_rgba", None) is None and source is not None:
+        display, labels = source
+        mask = np.asarray(labels) == layer.region_id
+        out = np.zeros(mask.shape + (4,), np.uint8)
+        box = _box_of(mask)
+        if box is not None:
+            inside, sub = out[box], mask[box]
+            np.copyto(inside[..., :3], srgb8_of(display)[box], where=sub[..., None])
+            inside[..., 3] = sub.view(np.uint8) * np.uint8(255)
+        return out
+    rgba = np.asarray(layer.rgba)
+    out = np.zeros(rgba.shape[:2] + (4,), np.uint8)
+    box = _box_of((rgba != 0).any(axis=2))
+    if box is not None:
+        crop = rgba[box]
+        out[box][..., :3] = outputs.linear_to_srgb8(crop[..., :3])
+        out[box][..., 3] = _alpha8(crop[..., 3])
+    return out
+
+
+def region_boxes(labels: np.ndarray) -> list[tuple[slice, slice] | None]:
+    """Bounding boxes of the regions: boxes[id - 1] bounds region id (None when it has no pixel)."""
     from scipy import ndimage
 
+    return ndimage.find_objects(np.asarray(labels).astype(np.int32, copy=False))
+
+
+def region_quads(result: DepthResult, textures_png: dict[int, bytes], all_in_focus8: np.ndarray, camera: Pinhole,
+                 boxes: list[tuple[slice, slice] | None] | None = None) -> list[outputs.TexturedQuad]:
+    """One quad per region with a distance, front to back: its bounding box back-projected at its distance.
+
+    `textures_png[id]` is the region's layer cropped to its box, as PNG; a region without one is
+    textured with the all-in-focus image under its mask.
+    """
     labels = np.asarray(result.labels)
-    boxes = ndimage.find_objects(labels.astype(np.int32))       # one pass: boxes[id - 1] bounds region id
+    boxes = region_boxes(labels) if boxes is None else boxes
     quads = []
     for region in sorted(result.regions, key=lambda r: r.order):
         z = region.distance_mm
@@ -176,12 +232,10 @@ def region_quads(result: DepthResult, layers_rgba8: dict[int, np.ndarray], all_i
         if z is None or not math.isfinite(z) or z <= 0 or box is None:
             continue
         (r0, r1), (c0, c1) = (box[0].start, box[0].stop), (box[1].start, box[1].stop)
-        rgba = layers_rgba8.get(region.id)
-        if rgba is None:
+        texture = textures_png.get(region.id)
+        if texture is None:
             crop = (labels[box] == region.id).astype(np.uint8) * 255
             texture = outputs.encode_png(np.dstack([all_in_focus8[box], crop]))
-        else:
-            texture = outputs.encode_png(np.ascontiguousarray(rgba[box]))
         # pixel edges in input-image coordinates; the centre of pixel u sits at edge u + 0.5
         left, right = c0 * result.pixel_scale - 0.5, c1 * result.pixel_scale - 0.5
         top, bottom = r0 * result.pixel_scale - 0.5, r1 * result.pixel_scale - 0.5
@@ -223,42 +277,96 @@ def _clean_folder(out_dir: Path) -> None:
         (out_dir / name).unlink(missing_ok=True)
 
 
+WRITE_THREADS = 2   # PNG/TIFF deflate, sRGB tables and file writes release the GIL: files encode side by side
+
+
 def write_outputs(out_dir: Path, result: DepthResult, loaded: LoadedInput, labels_input: np.ndarray,
-                  camera: Pinhole | None) -> list[str]:
+                  camera: Pinhole | None, *, threads: int = WRITE_THREADS) -> list[str]:
     """Write every output except result.json; returns their names relative to `out_dir`.
 
     `labels_input` is the region map at input resolution; `camera` is None in disparity-only mode.
+    Independent files are encoded and written by `threads` worker threads; every file's bytes are
+    the same whatever the number of threads or the order they finish in.
     """
+    from concurrent.futures import Future, ThreadPoolExecutor
+
     size = loaded.input_size_px
     scale = result.pixel_scale
-    written: list[str] = []
+    with_scene = camera is not None and result.depth_mm is not None
+    layers = ordered_layers(result)
+    boxes = region_boxes(result.labels) if with_scene else []
+    textured: set[int] = set()          # the first layer of a region textures its quad in the GLB
 
-    def done(path: Path) -> None:
-        written.append(path.relative_to(out_dir).as_posix())
+    with ThreadPoolExecutor(max_workers=max(1, threads), thread_name_prefix="mca-write") as pool:
+        # Tasks run first in, first out, and a task only waits for ones submitted before it: no deadlock.
+        conversions: dict[int, Future] = {}
 
-    if result.depth_mm is not None and camera is not None:
-        depth = np.asarray(result.depth_mm, dtype=np.float32)
-    else:
-        depth = np.full(result.labels.shape, np.nan, dtype=np.float32)
-        done(outputs.write_tiff_float32(out_dir / "disparity.tiff",
-                                        upsample_nearest(np.asarray(result.disparity_px, np.float32), scale, size)))
-    done(outputs.write_tiff_float32(out_dir / "depth.tiff", upsample_nearest(depth, scale, size)))
-    done(outputs.write_png(out_dir / "regions.png", labels_input.astype(np.uint16)))
-    all_in_focus8 = outputs.linear_to_srgb8(result.all_in_focus)
-    done(outputs.write_png(out_dir / "all_in_focus.png", all_in_focus8))
+        def srgb8_of(linear: np.ndarray) -> np.ndarray:
+            return conversions[id(linear)].result()
 
-    layers_rgba8: dict[int, np.ndarray] = {}
-    for index, layer in enumerate(ordered_layers(result)):
-        rgba8 = _layer_rgba8(np.asarray(layer.rgba))
-        layers_rgba8.setdefault(layer.region_id, rgba8)
-        done(outputs.write_png(out_dir / "layers" / f"{index:02d}.png", rgba8))
+        def convert(linear: np.ndarray) -> None:
+            if id(linear) not in conversions:
+                conversions[id(linear)] = pool.submit(outputs.linear_to_srgb8, linear)
 
-    if camera is not None and result.depth_mm is not None:
-        points, colours = scene_points(depth, all_in_focus8, scale, camera)
-        done(outputs.write_ply(out_dir / "scene.ply", points, colours, comments=(
-            "mca-appliance scene: camera frame, x right, y down, z along the optical axis, millimetres",)))
-        done(outputs.write_glb(out_dir / "scene.glb", region_quads(result, layers_rgba8, all_in_focus8, camera)))
-    return written
+        convert(result.all_in_focus)
+        for layer in layers:
+            source = getattr(layer, "_source", None)
+            if getattr(layer, "_rgba", None) is None and source is not None:
+                convert(source[0])
+
+        def write_depth() -> list[Path]:
+            written = []
+            if with_scene:
+                depth = np.asarray(result.depth_mm, dtype=np.float32)
+            else:
+                depth = np.full(result.labels.shape, np.nan, dtype=np.float32)
+                written.append(outputs.write_tiff_float32(
+                    out_dir / "disparity.tiff", upsample_nearest(np.asarray(result.disparity_px, np.float32),
+                                                                 scale, size)))
+            written.append(outputs.write_tiff_float32(out_dir / "depth.tiff", upsample_nearest(depth, scale, size)))
+            return written
+
+        def write_layer(index: int, layer: Any, box: tuple[slice, slice] | None) -> tuple[Path, bytes | None]:
+            rgba8 = _layer_rgba8(layer, srgb8_of)
+            png = outputs.encode_png(rgba8)
+            path = outputs.write_bytes_atomic(out_dir / "layers" / f"{index:02d}.png", png)
+            if box is None:
+                return path, None
+            crop = rgba8[box]
+            return path, png if crop.shape == rgba8.shape else outputs.encode_png(crop)   # a full-frame box: same PNG
+
+        def write_scene_ply() -> Path:
+            depth = np.asarray(result.depth_mm, dtype=np.float32)
+            points, colours = scene_points(depth, srgb8_of(result.all_in_focus), scale, camera)
+            return outputs.write_ply(out_dir / "scene.ply", points, colours, comments=(
+                "mca-appliance scene: camera frame, x right, y down, z along the optical axis, millimetres",))
+
+        # the longest tasks first, so that neither thread is left with a long one at the end
+        all_in_focus_task = pool.submit(lambda: outputs.write_png(out_dir / "all_in_focus.png",
+                                                                  srgb8_of(result.all_in_focus)))
+        regions_task = pool.submit(outputs.write_png, out_dir / "regions.png", labels_input.astype(np.uint16))
+        depth_task = pool.submit(write_depth)
+        layer_tasks = []
+        for index, layer in enumerate(layers):
+            box = None
+            if with_scene and layer.region_id not in textured and 0 < layer.region_id <= len(boxes):
+                textured.add(layer.region_id)
+                box = boxes[layer.region_id - 1]
+            layer_tasks.append((layer.region_id, pool.submit(write_layer, index, layer, box)))
+        ply_task = pool.submit(write_scene_ply) if with_scene else None
+
+        paths: list[Path] = depth_task.result() + [regions_task.result(), all_in_focus_task.result()]
+        textures: dict[int, bytes] = {}
+        for region_id, task in layer_tasks:
+            path, texture = task.result()
+            paths.append(path)
+            if texture is not None:
+                textures[region_id] = texture
+        if with_scene:
+            paths.append(ply_task.result())
+            quads = region_quads(result, textures, srgb8_of(result.all_in_focus), camera, boxes)
+            paths.append(outputs.write_glb(out_dir / "scene.glb", quads))
+    return [path.relative_to(out_dir).as_posix() for path in paths]
 
 
 def ordered_layers(result: DepthResult) -> list:

@@ -335,6 +335,25 @@ def opaque_window(alpha: np.ndarray) -> tuple[slice, slice] | None:
     return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
 
 
+def layer_rgba_crop(layer: Any, window: tuple[slice, slice]) -> np.ndarray:
+    """`layer.rgba[window]`, without the full-size float RGBA when the pipeline built the layer lazily.
+
+    `processing.result.MultiPlaneImage.rgba` of a layer with a (display image, labels) source is
+    display x mask with alpha = mask (mask = labels == region id); the same arithmetic on the window
+    alone gives the same values.
+    """
+    rows, cols = window
+    source = getattr(layer, "_source", None)
+    if getattr(layer, "_rgba", None) is None and source is not None:
+        display, labels = source
+        alpha = (np.asarray(labels)[rows, cols] == layer.region_id).astype(np.float32)
+        rgba = np.empty(alpha.shape + (4,), np.float32)
+        np.multiply(np.asarray(display)[rows, cols], alpha[..., None], out=rgba[..., :3])
+        rgba[..., 3] = alpha
+        return rgba
+    return np.asarray(layer.rgba)[rows, cols]
+
+
 def unpremultiplied_rgba8(rgba: np.ndarray) -> np.ndarray:
     """A float RGBA layer (colour premultiplied by alpha, as `processing.mpi` makes them) as 8-bit sRGB + alpha."""
     alpha = np.clip(np.nan_to_num(rgba[..., 3:4]), 0.0, 1.0)
@@ -642,8 +661,8 @@ class RerunRecorder:
                 continue
             rows, cols = window
             vertices, triangles, colours = plane_mesh(
-                np.asarray(layer.rgba)[rows, cols], distance_mm / 1000.0, focal_px, centre, scale,
-                origin_px=(cols.start, rows.start), full_width_px=layer.rgba.shape[1])
+                layer_rgba_crop(layer, window), distance_mm / 1000.0, focal_px, centre, scale,
+                origin_px=(cols.start, rows.start), full_width_px=result.labels.shape[1])
             if len(triangles):
                 self._stream.log(f"world/planes/{index:02d}", rr.Mesh3D(
                     vertex_positions=vertices, triangle_indices=triangles, vertex_colors=colours))
@@ -659,14 +678,13 @@ class RerunRecorder:
         frame_w, _ = display_size(w, h, megapixels=MULTI_PLANE_MEGAPIXELS)
         zoom = frame_w / w
         for index, layer in enumerate(front_to_back(result)):
-            rgba = np.asarray(layer.rgba)
-            window = windows.get(layer.region_id) or opaque_window(rgba[..., 3])
+            window = windows.get(layer.region_id) or opaque_window(np.asarray(layer.rgba)[..., 3])
             if window is None:
                 continue
             rows, cols = window
             x0, y0 = int(cols.start * zoom), int(rows.start * zoom)
             size = (max(1, int(math.ceil(cols.stop * zoom)) - x0), max(1, int(math.ceil(rows.stop * zoom)) - y0))
-            crop = resize(np.ascontiguousarray(rgba[rows, cols], dtype=np.float32), size)
+            crop = resize(np.ascontiguousarray(layer_rgba_crop(layer, window), dtype=np.float32), size)
             path = f"shot/multi_plane/{index:02d}"
             self._stream.log(path, rr.Transform3D(translation=[float(x0), float(y0), 0.0]))
             self._stream.log(path, rr.Image(unpremultiplied_rgba8(crop), color_model="RGBA"))
