@@ -20,13 +20,19 @@ def _child(planes, scene: str, scale: float, runs: int, queue) -> None:
 
     optics = SimulationOptics.from_profile(load_profile("paper-70d"), scale)
     base_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    timings, totals, sgbm = [], [], []
+    timings, totals, cpus, sgbm = [], [], [], []
     regions = 0
+
+    def cpu_s() -> float:
+        usage = resource.getrusage(resource.RUSAGE_SELF)
+        return usage.ru_utime + usage.ru_stime
+
     for _ in range(runs):
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), cpu_s()
         result = run_pipeline(planes, optics.aperture, optics.mca, pixel_scale=2.0,
                               channel_offsets_px=RGGB_HALF_RES_OFFSETS_PX)
         totals.append(time.perf_counter() - start)
+        cpus.append(cpu_s() - cpu_start)
         timings.append(result.timings_s)
         regions = len(result.regions)
         del result
@@ -36,7 +42,7 @@ def _child(planes, scene: str, scale: float, runs: int, queue) -> None:
         start = time.perf_counter()
         sgbm_disparity(planes, optics.aperture, (low / 2, high / 2))
         sgbm.append(time.perf_counter() - start)
-    queue.put((timings, totals, sgbm, regions, base_kb, peak_kb))
+    queue.put((timings, totals, cpus, sgbm, regions, base_kb, peak_kb))
 
 
 def main() -> None:
@@ -61,9 +67,11 @@ def main() -> None:
     queue = mp.get_context("spawn").Queue()
     process = mp.get_context("spawn").Process(target=_child, args=(planes, args.scene, args.scale, args.runs, queue))
     process.start()
-    timings, totals, sgbm, regions, base_kb, peak_kb = queue.get()
+    timings, totals, cpus, sgbm, regions, base_kb, peak_kb = queue.get()
     process.join()
-    print(f"pipeline: {regions} regions, median of {args.runs} runs: total {statistics.median(totals):.2f} s")
+    print(f"pipeline: {regions} regions, median of {args.runs} runs: total {statistics.median(totals):.2f} s "
+          f"(CPU {statistics.median(cpus):.2f} s over all threads; a CPU close to the total on 2 cores means the "
+          f"machine was busy with something else)")
     for stage in timings[0]:
         if stage != "total":
             print(f"  {stage:<13} {statistics.median(t[stage] for t in timings):6.3f} s")

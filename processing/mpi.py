@@ -12,7 +12,8 @@ from processing.result import MultiPlaneImage
 def all_in_focus(planes: np.ndarray, aperture: FilterAperture, disparity_px: np.ndarray) -> np.ndarray:
     """Each channel sampled at x + d(x) s_c with the region-model disparity (processing px): the channels of
     every region are re-aligned, so its colour fringes vanish (section V-A)."""
-    return np.clip(warp_channels(planes, aperture, disparity_px, cv2.INTER_CUBIC), 0.0, None)
+    image = warp_channels(planes, aperture, disparity_px, cv2.INTER_CUBIC)
+    return np.maximum(image, 0.0, out=image)                 # cubic overshoot below black
 
 
 def region_alpha(labels: np.ndarray, region_id: int, feather_px: float = 0.0) -> np.ndarray:
@@ -35,7 +36,8 @@ def multi_plane_images(image: np.ndarray, labels: np.ndarray, region_ids: list[i
     """
     step = max(1, int(np.sqrt(image.shape[0] * image.shape[1] / 250_000)))
     scale = float(np.percentile(image[::step, ::step], 99.5)) or 1.0
-    display = np.clip(image * np.float32(1.0 / scale), 0.0, 1.0).astype(np.float32)
+    display = np.multiply(image, np.float32(1.0 / scale), dtype=np.float32)
+    np.clip(display, 0.0, 1.0, out=display)
     layers = []
     for region_id in sorted(region_ids, key=lambda i: -disparities_px[i]):
         layers.append(MultiPlaneImage(region_id, None, inter_image_depths_mm.get(region_id),

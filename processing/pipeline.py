@@ -23,6 +23,7 @@ Stages (names as given to the recorder and used as keys of `DepthResult.timings_
 """
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Iterator
@@ -32,12 +33,13 @@ import numpy as np
 
 from processing.camera import FilterAperture
 from processing.depth import depth_map_mm, region_depth
-from processing.disparity import DisparityMap, DisparityParams, band_pass, estimate_disparity, sample_shifted
+from processing.disparity import (DisparityMap, DisparityParams, band_pass, estimate_disparity, parallel_map,
+                                 sample_shifted)
 from processing.mpi import all_in_focus, multi_plane_images
 from processing.optics import MCAOptics
 from processing.result import DepthResult, NullRecorder, Recorder, Region
-from processing.sketch import (RefineParams, SketchParams, build_sketch, occlusion_aware_weights, refine_regions,
-                               rescale_plane)
+from processing.sketch import (RefineParams, SketchParams, build_sketch, occlusion_aware_weights,
+                               prepare_refine_level, refine_regions, rescale_plane)
 
 # Position of each channel's samples relative to the centre of its 2x2 RGGB block, in half-resolution
 # (processing) pixels, for planes taken straight from an RGGB mosaic: red at (0, 0), the mean of the two
@@ -85,6 +87,28 @@ class _Stage:
             self.timer.recorder.timing(self.name, seconds)
 
 
+class _Background:
+    """`function(*args)` on its own thread; `result()` waits for it (and raises what it raised)."""
+
+    def __init__(self, function, *args) -> None:
+        self._value, self._error = None, None
+
+        def target() -> None:
+            try:
+                self._value = function(*args)
+            except BaseException as error:  # noqa: BLE001 - handed to the caller of result()
+                self._error = error
+
+        self._thread = threading.Thread(target=target, name="mca-refine-level", daemon=True)
+        self._thread.start()
+
+    def result(self):
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._value
+
+
 def default_disparity_range_px(aperture: FilterAperture, optics: MCAOptics | None,
                                shape_px: tuple[int, int]) -> tuple[float, float]:
     """Search range in input pixels: DEPTH_RANGE_MM around the focus plane with optics, else from the frame
@@ -100,12 +124,13 @@ def default_disparity_range_px(aperture: FilterAperture, optics: MCAOptics | Non
 
 def align_channel_samples(planes: np.ndarray, offsets_px: tuple[tuple[float, float], ...]) -> np.ndarray:
     """Resample each channel so that its samples sit at the pixel centres (cubic interpolation)."""
-    out = np.empty_like(planes, dtype=np.float32)
-    for c in range(3):
+    channels = cv2.split(np.asarray(planes, dtype=np.float32))
+
+    def one(c: int) -> np.ndarray:
         dx, dy = offsets_px[c]
-        channel = np.ascontiguousarray(planes[..., c], dtype=np.float32)
-        out[..., c] = channel if dx == 0 and dy == 0 else sample_shifted(channel, -dx, -dy, cv2.INTER_CUBIC)
-    return out
+        return channels[c] if dx == 0 and dy == 0 else sample_shifted(channels[c], -dx, -dy, cv2.INTER_CUBIC)
+
+    return cv2.merge(parallel_map(one, range(3)))
 
 
 def run_pipeline(planes: np.ndarray, aperture: FilterAperture, optics: MCAOptics | None, *,
@@ -150,6 +175,9 @@ def run_pipeline(planes: np.ndarray, aperture: FilterAperture, optics: MCAOptics
                         confidence=disparity.confidence, cost=disparity.cost, analysis_scale=float(factor))
 
     # --- the 2.1D sketch -------------------------------------------------------------------------------------------
+    # the refinement's pyramid level and band-pass need no sketch: made on a thread beside the single-threaded
+    # superpixels (joined in "refine")
+    refine_level = _Background(prepare_refine_level, planes, params.refine)
     with timer.stage("sketch"):
         sketch = build_sketch(small, aperture, disparity, params.sketch)
         recorder.record("sketch", labels=sketch.labels, aligned=sketch.aligned, region_count=len(sketch.regions),
@@ -165,7 +193,8 @@ def run_pipeline(planes: np.ndarray, aperture: FilterAperture, optics: MCAOptics
         slanted = {r.id: r.slanted for r in sketch.regions}
         refine = params.refine
         refine = RefineParams(**{**refine.__dict__, "search_radius_px": max(refine.search_radius_px, 0.5 * factor)})
-        planes_proc, dips = refine_regions(planes, aperture, labels_full, weights_full, init, slanted, refine)
+        planes_proc, dips = refine_regions(planes, aperture, labels_full, weights_full, init, slanted, refine,
+                                           prepared=refine_level.result())
         centroids = {r.id: ((r.centroid_xy[0] + 0.5) * factor - 0.5, (r.centroid_xy[1] + 0.5) * factor - 0.5)
                      for r in sketch.regions}
         planes_in = {i: rescale_plane(p, pixel_scale) for i, p in planes_proc.items()}
@@ -181,8 +210,16 @@ def run_pipeline(planes: np.ndarray, aperture: FilterAperture, optics: MCAOptics
         coef = np.zeros((int(labels_full.max()) + 1, 3), np.float32)
         for i, plane in planes_proc.items():
             coef[i] = plane
-        model_proc = (coef[labels_full, 0] * np.arange(width, dtype=np.float32)[None, :]
-                      + coef[labels_full, 1] * np.arange(height, dtype=np.float32)[:, None] + coef[labels_full, 2])
+        # constant regions: a gather; slanted ones a x + b y + c on their own pixels
+        model_proc = np.take(coef[:, 2], labels_full)
+        slanted_pixels = {}
+        for i, (a, b, c) in planes_proc.items():
+            if a != 0.0 or b != 0.0:
+                sel = labels_full == i
+                ys_sel, xs_sel = np.nonzero(sel)
+                model_proc[sel] = (coef[i, 0] * xs_sel.astype(np.float32) + coef[i, 1] * ys_sel.astype(np.float32)
+                                   + coef[i, 2])
+                slanted_pixels[i] = sel
         model_in = model_proc * np.float32(pixel_scale)
         raw_in = cv2.resize(disparity.disparity_px, (width, height), interpolation=cv2.INTER_LINEAR) \
             / np.float32(to_analysis)
@@ -194,10 +231,8 @@ def run_pipeline(planes: np.ndarray, aperture: FilterAperture, optics: MCAOptics
             for i, (a, b, c) in planes_proc.items():
                 per_region[i] = depth_map_mm(np.array([c * pixel_scale], np.float32), optics)[0]
             depth = per_region[labels_full]
-            for i, (a, b, c) in planes_proc.items():
-                if a != 0.0 or b != 0.0:
-                    sel = labels_full == i
-                    depth[sel] = depth_map_mm(model_in[sel], optics)
+            for sel in slanted_pixels.values():
+                depth[sel] = depth_map_mm(model_in[sel], optics)
         # order: by disparity, nearest first (smaller disparity = nearer)
         ranked = sorted(planes_in, key=lambda i: centre_disp[i])
         order = {i: rank for rank, i in enumerate(ranked)}

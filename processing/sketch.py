@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 
 from processing.camera import FilterAperture
-from processing.disparity import DisparityMap, warp_channels
+from processing.disparity import DisparityMap, parallel_map, warp_channels
 
 
 @dataclass(frozen=True)
@@ -110,7 +110,14 @@ def weighted_median_by_label(labels: np.ndarray, values: np.ndarray, weights: np
     flat_l = labels.ravel()
     flat_v = values.ravel().astype(np.float64)
     flat_w = weights.ravel().astype(np.float64) + 1e-9
-    order = np.lexsort((flat_v, flat_l))
+    if flat_v.size and np.isfinite(flat_v).all():
+        # one sort of label * span + value (the label dominates): ties hold one value, so an unstable sort
+        # gives the same medians as the lexsort, several times faster
+        low = float(flat_v.min())
+        span = float(flat_v.max()) - low + 1.0
+        order = np.argsort(flat_l.astype(np.float64) * span + (flat_v - low))
+    else:
+        order = np.lexsort((flat_v, flat_l))
     sv, sw = flat_v[order], flat_w[order]
     cum = np.cumsum(sw)
     totals = np.bincount(flat_l, weights=flat_w, minlength=count)
@@ -232,8 +239,10 @@ def build_sketch(planes: np.ndarray, aperture: FilterAperture, disparity: Dispar
                           smooth * params.disparity_weight]).astype(np.float32)
     side = params.superpixel_px * max(1.0, (height * width / 300_000) ** 0.5)   # fewer, larger ones on big grids
     n_segments = max(16, int(height * width / side ** 2))
+    # SLIC's own pre-smoothing (sigma 0.5, reflect) done by OpenCV: the same 5-tap kernel, several times faster
+    features = cv2.GaussianBlur(features, (5, 5), 0.5, borderType=cv2.BORDER_REFLECT)
     superpixels = slic(features, n_segments=n_segments, compactness=params.slic_compactness, start_label=0,
-                       channel_axis=-1, enforce_connectivity=True, convert2lab=False, sigma=0.5,
+                       channel_axis=-1, enforce_connectivity=True, convert2lab=False, sigma=0,
                        max_num_iter=6)                     # the merge that follows forgives a rougher start
     superpixels = superpixels.astype(np.int32)
     count = int(superpixels.max()) + 1
@@ -325,49 +334,78 @@ def _merge(stats: list[_Stats], edges: dict[tuple[int, int], int], superpixels: 
            params: SketchParams, total_pixels: int) -> np.ndarray:
     """Greedy agglomeration of superpixels; returns the region index of each superpixel."""
     count = len(stats)
-    ys, xs = np.indices(superpixels.shape)
-    # boundary midpoints of superpixel pairs
-    sums: dict[tuple[int, int], list[float]] = {}
-    for a_img, b_img, xa, ya in ((superpixels[:, :-1], superpixels[:, 1:], xs[:, :-1] + 0.5, ys[:, :-1]),
-                                 (superpixels[:-1, :], superpixels[1:, :], xs[:-1, :], ys[:-1, :] + 0.5)):
+    height, width = superpixels.shape
+    # boundary midpoints of superpixel pairs (sums of x, y and the number of pixel edges per pair)
+    keys, mx, my = [], [], []
+    for a_img, b_img, dx, dy in ((superpixels[:, :-1], superpixels[:, 1:], 0.5, 0.0),
+                                 (superpixels[:-1, :], superpixels[1:, :], 0.0, 0.5)):
         diff = a_img != b_img
+        ys_, xs_ = np.nonzero(diff)
         lo = np.minimum(a_img[diff], b_img[diff]).astype(np.int64)
         hi = np.maximum(a_img[diff], b_img[diff]).astype(np.int64)
-        key = lo * count + hi
-        uniq, inverse = np.unique(key, return_inverse=True)
-        sx = np.bincount(inverse, weights=xa[diff])
-        sy = np.bincount(inverse, weights=ya[diff])
-        n = np.bincount(inverse)
-        for k, vx, vy, vn in zip(uniq, sx, sy, n):
-            entry = sums.setdefault((int(k // count), int(k % count)), [0.0, 0.0, 0.0])
-            entry[0] += vx
-            entry[1] += vy
-            entry[2] += vn
+        keys.append(lo * count + hi)
+        mx.append(xs_ + dx)
+        my.append(ys_ + dy)
+    uniq, inverse = np.unique(np.concatenate(keys), return_inverse=True)
+    sx_all = np.bincount(inverse, weights=np.concatenate(mx))
+    sy_all = np.bincount(inverse, weights=np.concatenate(my))
+    n_all = np.bincount(inverse).astype(np.float64)
+    pair_a, pair_b = (uniq // count).tolist(), (uniq % count).tolist()
     parent = list(range(count))
     alive = {i: stats[i] for i in range(count)}
     neighbours: dict[int, dict[int, list[float]]] = {i: {} for i in range(count)}
-    for (a, b), (sx_, sy_, n_) in sums.items():
+    for a, b, sx_, sy_, n_ in zip(pair_a, pair_b, sx_all.tolist(), sy_all.tolist(), n_all.tolist()):
         neighbours[a][b] = [sx_, sy_, n_]
         neighbours[b][a] = [sx_, sy_, n_]
     version = [0] * count
     heap: list[tuple[float, int, int, int, int]] = []
+    # per-node values of `_merge_cost` as arrays, so that all edges of a node are priced at once
+    feats = np.array([(st.cr, st.cg, st.mean_lum) + tuple(st.plane_) + (1.0 if st.sums[0] > 0 else 0.0,)
+                      for st in stats], np.float64).reshape(count, 7)
 
-    def push(a: int, b: int) -> None:
-        sx_, sy_, n_ = neighbours[a][b]
-        cost = _merge_cost(alive[a], alive[b], (sx_ / n_, sy_ / n_), params)
-        if cost < 1.0:
-            heapq.heappush(heap, (cost, a, b, version[a], version[b]))
+    def costs(a: int, others: np.ndarray, entries: np.ndarray) -> np.ndarray:
+        """`_merge_cost` of node a against each of `others` (boundary sums `entries`), vectorised."""
+        fa, fo = feats[a], feats[others]
+        chroma = np.sqrt((fa[0] - fo[:, 0]) ** 2 + (fa[1] - fo[:, 1]) ** 2) / params.chroma_threshold
+        lum = np.abs(fa[2] - fo[:, 2]) / params.luminance_threshold
+        x, y = entries[:, 0] / entries[:, 2], entries[:, 1] / entries[:, 2]
+        da = fa[3] * x + fa[4] * y + fa[5]
+        db = fo[:, 3] * x + fo[:, 4] * y + fo[:, 5]
+        disparity = np.where((fa[6] > 0) & (fo[:, 6] > 0), np.abs(da - db) / params.disparity_threshold_px, 0.0)
+        return np.maximum(np.maximum(chroma, lum), disparity)
 
-    for a in range(count):
-        for b in neighbours[a]:
-            if a < b:
-                push(a, b)
+    def push_all(a: int, others: list[int]) -> None:
+        if not others:
+            return
+        nb = neighbours[a]
+        idx = np.array(others, np.int64)
+        cost = costs(a, idx, np.array([nb[c] for c in others], np.float64))
+        va = version[a]
+        for k in np.flatnonzero(cost < 1.0).tolist():
+            c = others[k]
+            heapq.heappush(heap, (float(cost[k]), a, c, va, version[c]))
+
+    if len(uniq):
+        first = np.array(pair_a, np.int64)
+        fa, fo = feats[first], feats[np.array(pair_b, np.int64)]
+        chroma = np.sqrt((fa[:, 0] - fo[:, 0]) ** 2 + (fa[:, 1] - fo[:, 1]) ** 2) / params.chroma_threshold
+        lum = np.abs(fa[:, 2] - fo[:, 2]) / params.luminance_threshold
+        x, y = sx_all / n_all, sy_all / n_all
+        da = fa[:, 3] * x + fa[:, 4] * y + fa[:, 5]
+        db = fo[:, 3] * x + fo[:, 4] * y + fo[:, 5]
+        disparity = np.where((fa[:, 6] > 0) & (fo[:, 6] > 0), np.abs(da - db) / params.disparity_threshold_px, 0.0)
+        cost = np.maximum(np.maximum(chroma, lum), disparity)
+        heap = [(float(cost[k]), pair_a[k], pair_b[k], 0, 0) for k in np.flatnonzero(cost < 1.0).tolist()]
+        heapq.heapify(heap)
     while heap:
         cost, a, b, va, vb = heapq.heappop(heap)
         if a not in alive or b not in alive or version[a] != va or version[b] != vb:
             continue
         # merge b into a
-        alive[a] = alive[a].merged(alive[b])
+        merged = alive[a].merged(alive[b])
+        alive[a] = merged
+        feats[a] = (merged.cr, merged.cg, merged.mean_lum) + tuple(merged.plane_) + (
+            1.0 if merged.sums[0] > 0 else 0.0,)
         del alive[b]
         parent[b] = a
         for c, (sx_, sy_, n_) in neighbours.pop(b).items():
@@ -380,8 +418,7 @@ def _merge(stats: list[_Stats], edges: dict[tuple[int, int], int], superpixels: 
             entry[2] += n_
             neighbours[c][a] = entry
         version[a] += 1
-        for c in list(neighbours[a]):
-            push(a, c)
+        push_all(a, list(neighbours[a]))
     region = np.empty(count, dtype=np.int32)
     for i in range(count):
         root = i
@@ -393,14 +430,20 @@ def _merge(stats: list[_Stats], edges: dict[tuple[int, int], int], superpixels: 
 
 def _relabel(labels: np.ndarray) -> np.ndarray:
     """Consecutive ids 1..L, numbered in raster order of first appearance; each id one connected component."""
+    from scipy import ndimage
+
     out = np.zeros(labels.shape, np.int32)
     next_id = 1
-    for value in np.unique(labels):
-        mask = (labels == value).astype(np.uint8)
-        n, components = cv2.connectedComponents(mask, connectivity=4)
-        for k in range(1, n):
-            out[components == k] = next_id
-            next_id += 1
+    low = int(labels.min())
+    shifted = (labels - (low - 1)).astype(np.int32)          # 1.. for find_objects
+    for index, box in enumerate(ndimage.find_objects(shifted)):
+        if box is None:
+            continue
+        mask = shifted[box] == index + 1                     # components inside the value's bounding box:
+        n, components = cv2.connectedComponents(mask.astype(np.uint8), connectivity=4)   # same raster order
+        region = out[box]
+        region[mask] = components[mask] + (next_id - 1)
+        next_id += n - 1
     return out
 
 
@@ -557,17 +600,13 @@ def _fit_regions(labels: np.ndarray, aligned: np.ndarray, disparity: DisparityMa
     cys = np.bincount(flat, weights=ys_all, minlength=count) / safe
     colours = np.stack([np.bincount(flat, weights=aligned[..., c].ravel(), minlength=count) for c in range(3)],
                        axis=1) / safe[:, None]
-    order = np.argsort(flat, kind="stable")
-    starts = np.concatenate([[0], np.cumsum(sizes)])
     d_all = disparity.disparity_px.ravel()
     w_all = weights.ravel()
     c_all = disparity.confidence.ravel()
-    regions = []
-    for region_id in range(1, count):
+
+    def fit(region_id: int) -> SketchRegion:
         n = int(sizes[region_id])
-        if n == 0:
-            continue
-        members = order[starts[region_id]:starts[region_id + 1]]
+        members = np.flatnonzero(flat == region_id)         # raster order
         if n > max_samples:
             members = members[::int(np.ceil(n / max_samples))]
         x, y = xs_all[members], ys_all[members]
@@ -579,9 +618,11 @@ def _fit_regions(labels: np.ndarray, aligned: np.ndarray, disparity: DisparityMa
         plane, slanted, confidence = select_model(x - cx, y - cy, d, w, params)
         a, b, c = plane
         colour = tuple(float(v) for v in colours[region_id])
-        regions.append(SketchRegion(region_id, n, (cx, cy), (a, b, c - a * cx - b * cy), slanted,
-                                    confidence, colour))  # type: ignore[arg-type]
-    return regions
+        return SketchRegion(region_id, n, (cx, cy), (a, b, c - a * cx - b * cy), slanted,
+                            confidence, colour)  # type: ignore[arg-type]
+
+    # regions are independent: fitted on the worker threads (the sorts and solves release the GIL)
+    return parallel_map(fit, [i for i in range(1, count) if sizes[i] > 0])
 
 
 def select_model(x: np.ndarray, y: np.ndarray, d: np.ndarray, w: np.ndarray, params: SketchParams
@@ -612,14 +653,25 @@ def _occlusion(labels: np.ndarray, regions: list[SketchRegion], disparity: Dispa
     Ownership evidence: on the boundary the measured disparity follows the occluding region, so
     the fraction of confident boundary pixels closer to the front region's model is recorded.
     """
+    from scipy import ndimage
+
     by_id = {r.id: r for r in regions}
     occludes: dict[int, list[int]] = {r.id: [] for r in regions}
     ownership: dict[tuple[int, int], float] = {}
+    boxes = ndimage.find_objects(labels)
+    height, width = labels.shape
     for (a, b), length in adjacency(labels).items():
         if a == 0 or b == 0 or a not in by_id or b not in by_id:
             continue
-        band = boundary_pixels(labels, a, b, 2)
+        # the boundary band lies inside the union of the two regions' bounding boxes (plus the band's width)
+        ba, bb = boxes[a - 1], boxes[b - 1]
+        y0 = max(0, min(ba[0].start, bb[0].start) - 3)
+        y1 = min(height, max(ba[0].stop, bb[0].stop) + 3)
+        x0 = max(0, min(ba[1].start, bb[1].start) - 3)
+        x1 = min(width, max(ba[1].stop, bb[1].stop) + 3)
+        band = boundary_pixels(labels[y0:y1, x0:x1], a, b, 2)
         ys, xs = np.nonzero(band)
+        ys, xs = ys + y0, xs + x0
         da = by_id[a].disparity_at(xs, ys)
         db = by_id[b].disparity_at(xs, ys)
         front, back = (a, b) if float(np.mean(da - db)) < 0 else (b, a)
@@ -668,7 +720,8 @@ class RefineParams:
     search_radius_px: float = 1.5       # +- around the sketch's estimate, processing px
     coarse_step_px: float = 0.5         # first pass: offsets this far apart (processing px) ...
     fine_step_px: float = 0.1           # ... second pass around each region's first-pass centre
-    fine_count: int = 4                 # second pass: offsets -fine_count..+fine_count fine steps
+    fine_count: int = 2                 # second pass (pyramid level): offsets -fine_count..+fine_count ...
+    level_fine_step_px: float = 0.2     # ... this far apart (processing px): 5 evaluations cover +-0.4 px
     max_pixels: int = 1_400_000         # the refinement runs on the first pyramid level at most this large
     band_sigma_px: tuple[float, float] = (2.0, 10.0)   # band-pass at the level: band-limits, so that the
                                                       # linear interpolation does not pull toward whole pixels
@@ -684,10 +737,33 @@ def _parabola_min(xs: np.ndarray, ys: np.ndarray) -> float:
     return float(xs[i])
 
 
+@dataclass
+class RefineLevel:
+    """The pyramid level the refinement runs on (0 = the processing grid itself) and its band-pass planes."""
+
+    level: int
+    band: np.ndarray | None             # (h, w, 3) float32 band-pass of the level; None for level 0
+
+
+def prepare_refine_level(planes: np.ndarray, params: RefineParams = RefineParams()) -> RefineLevel:
+    """The first Gaussian-pyramid level of at most `params.max_pixels` and its band-pass (no sketch needed)."""
+    from processing.disparity import band_pass
+
+    level = 0
+    while planes.shape[0] * planes.shape[1] / 4 ** level > params.max_pixels:
+        level += 1
+    if level == 0:
+        return RefineLevel(0, None)
+    reduced = planes
+    for _ in range(level):
+        reduced = cv2.pyrDown(reduced)      # anti-aliased: aliasing would not move with the disparity
+    return RefineLevel(level, band_pass(reduced, *params.band_sigma_px))
+
+
 def refine_regions(planes: np.ndarray, aperture: FilterAperture, labels: np.ndarray, weights: np.ndarray,
                    planes_px: dict[int, tuple[float, float, float]], slanted: dict[int, bool],
-                   params: RefineParams = RefineParams()) -> tuple[dict[int, tuple[float, float, float]],
-                                                                   dict[int, float]]:
+                   params: RefineParams = RefineParams(), prepared: "RefineLevel | None" = None
+                   ) -> tuple[dict[int, tuple[float, float, float]], dict[int, float]]:
     """Refine every region's disparity model (processing px) at once by minimising the colour-line cost
     summed over its weighted pixels.
 
@@ -698,23 +774,23 @@ def refine_regions(planes: np.ndarray, aperture: FilterAperture, labels: np.ndar
     (or, for slanted regions, a robust plane) over the cells, weighted by curvature x weight, is the
     region's model: cells contaminated by another object (mislabelled pixels, occluder edges) are rejected.
 
+    `prepared` (from `prepare_refine_level`, which needs no sketch and can run beside it) saves the
+    pyramid level and its band-pass.
+
     Returns the refined planes and, per region, the depth of the cost dip (a confidence in [0, 1]).
     """
-    from processing.disparity import AlignmentCost, band_pass, subpixel_minimum
+    from processing.disparity import AlignmentCost, subpixel_minimum
 
     ids = sorted(planes_px)
     if not ids:
         return {}, {}
-    level = 0
-    while planes.shape[0] * planes.shape[1] / 4 ** level > params.max_pixels:
-        level += 1
+    if prepared is None:
+        prepared = prepare_refine_level(planes, params)
+    level = prepared.level
     if level == 0:
         # small grids: per-region crops are affordable and keep the most pixels of small objects
         return _refine_per_region(planes, aperture, labels, weights, planes_px, slanted, params)
-    reduced = planes
-    for _ in range(level):
-        reduced = cv2.pyrDown(reduced)      # anti-aliased: aliasing would not move with the disparity
-    height, width = reduced.shape[:2]
+    height, width = prepared.band.shape[:2]
     factor = 2.0 ** level
     if level:
         llabels = cv2.resize(labels.astype(np.int32), (width, height), interpolation=cv2.INTER_NEAREST)
@@ -778,16 +854,18 @@ def refine_regions(planes: np.ndarray, aperture: FilterAperture, labels: np.ndar
     cys = np.bincount(bins, weights=(w * ys).ravel(), minlength=n_bins).reshape(count + 1, n_cells)[:count]
     cxs /= np.maximum(wsum, 1e-12)
     cys /= np.maximum(wsum, 1e-12)
-    cost_model = AlignmentCost(band_pass(reduced, *params.band_sigma_px), aperture, params.window_px,
-                               params.noise_floor)
+    cost_model = AlignmentCost(prepared.band, aperture, params.window_px, params.noise_floor)
 
     def curves(base: np.ndarray, offsets: np.ndarray) -> np.ndarray:
         """(count, n_cells, K) summed weighted cost at each offset added to the model map `base`."""
         out = np.empty((count, n_cells, len(offsets)))
-        for k, delta in enumerate(offsets):
-            cost = cost_model.per_pixel(base + np.float32(delta))
-            out[:, :, k] = np.bincount(bins, weights=(cost * w).ravel(), minlength=n_bins).reshape(
+
+        def reduce(k: int, cost: np.ndarray) -> None:
+            cost *= w
+            out[:, :, k] = np.bincount(bins, weights=cost.ravel(), minlength=n_bins).reshape(
                 count + 1, n_cells)[:count]
+
+        cost_model.offsets(base, offsets, reduce)
         return out
 
     def fit(coef: np.ndarray, offsets: np.ndarray, cells: np.ndarray) -> np.ndarray:
@@ -835,7 +913,7 @@ def refine_regions(planes: np.ndarray, aperture: FilterAperture, labels: np.ndar
             order = np.argsort(cell_best[r][used])
             cum = np.cumsum(wsum[r][used][order])
             coef[r, 2] += float(cell_best[r][used][order][np.searchsorted(cum, cum[-1] / 2)])
-    fine = np.arange(-params.fine_count, params.fine_count + 1) * (params.fine_step_px / factor)
+    fine = np.arange(-params.fine_count, params.fine_count + 1) * (params.level_fine_step_px / factor)
     if params.fine_count > 0:
         coef = fit(coef, fine, curves(model_map(np.vstack([coef, [(0.0, 0.0, 0.0)]]), index_model), fine))
     results, dips = {}, {}
