@@ -74,7 +74,8 @@ def main() -> None:
           f"machine was busy with something else)")
     for stage in timings[0]:
         if stage != "total":
-            print(f"  {stage:<13} {statistics.median(t[stage] for t in timings):6.3f} s")
+            note = "  (part of depth)" if stage == "boundaries" else ""
+            print(f"  {stage:<13} {statistics.median(t[stage] for t in timings):6.3f} s{note}")
     print(f"peak memory of the pipeline process: {peak_kb / 1024:.0f} MiB "
           f"({(peak_kb - base_kb) / 1024:.0f} MiB above its start with the planes loaded)")
     print(f"StereoSGBM (one pass, widest pair, same planes): median {statistics.median(sgbm):.2f} s")

@@ -38,8 +38,8 @@ from processing.disparity import (DisparityMap, DisparityParams, band_pass, esti
 from processing.mpi import all_in_focus, multi_plane_images
 from processing.optics import MCAOptics
 from processing.result import DepthResult, NullRecorder, Recorder, Region
-from processing.sketch import (RefineParams, SketchParams, build_sketch, occlusion_aware_weights,
-                               prepare_refine_level, refine_regions, rescale_plane)
+from processing.sketch import (BoundaryParams, RefineParams, SketchParams, build_sketch, occlusion_aware_weights,
+                               prepare_refine_level, refine_regions, rescale_plane, snap_boundaries)
 
 # Position of each channel's samples relative to the centre of its 2x2 RGGB block, in half-resolution
 # (processing) pixels, for planes taken straight from an RGGB mosaic: red at (0, 0), the mean of the two
@@ -61,6 +61,7 @@ class PipelineParams:
     sketch: SketchParams = SketchParams()
     refine: RefineParams = RefineParams()
     occlusion_margin_px: int = 3           # analysis px excluded beside occluders when refining
+    boundaries: BoundaryParams | None = BoundaryParams()   # None: labels upsampled by nearest neighbour only
 
 
 @dataclass
@@ -210,6 +211,12 @@ def run_pipeline(planes: np.ndarray, aperture: FilterAperture, optics: MCAOptics
         coef = np.zeros((int(labels_full.max()) + 1, 3), np.float32)
         for i, plane in planes_proc.items():
             coef[i] = plane
+        if params.boundaries is not None and factor > 1:
+            # region boundaries at processing resolution (the analysis grid's are blocks of `factor` px)
+            start = time.perf_counter()
+            labels_full = snap_boundaries(planes, aperture, labels_full, small, sketch.labels, sketch.aligned, coef,
+                                          factor, params.boundaries)
+            timer.timings["boundaries"] = time.perf_counter() - start
         # constant regions: a gather; slanted ones a x + b y + c on their own pixels
         model_proc = np.take(coef[:, 2], labels_full)
         slanted_pixels = {}

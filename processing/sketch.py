@@ -726,6 +726,9 @@ class RefineParams:
     band_sigma_px: tuple[float, float] = (2.0, 10.0)   # band-pass at the level: band-limits, so that the
                                                       # linear interpolation does not pull toward whole pixels
     cell_px: int = 48                   # side of the cells whose minima are fitted robustly (processing px)
+    coarse_on_next_level: bool = False  # pass 1 on the next (4x smaller) pyramid level: ~2x faster refinement,
+                                        # but it moved paper-e's spatula by 0.2 input px and lowered the dips;
+                                        # off until `mca evaluate` shows no regression
 
 
 def _parabola_min(xs: np.ndarray, ys: np.ndarray) -> float:
@@ -743,6 +746,7 @@ class RefineLevel:
 
     level: int
     band: np.ndarray | None             # (h, w, 3) float32 band-pass of the level; None for level 0
+    coarse_band: np.ndarray | None = None   # band-pass of the next level (pass 1), when asked for
 
 
 def prepare_refine_level(planes: np.ndarray, params: RefineParams = RefineParams()) -> RefineLevel:
@@ -757,7 +761,102 @@ def prepare_refine_level(planes: np.ndarray, params: RefineParams = RefineParams
     reduced = planes
     for _ in range(level):
         reduced = cv2.pyrDown(reduced)      # anti-aliased: aliasing would not move with the disparity
-    return RefineLevel(level, band_pass(reduced, *params.band_sigma_px))
+    coarse = band_pass(cv2.pyrDown(reduced), *params.band_sigma_px) if params.coarse_on_next_level else None
+    return RefineLevel(level, band_pass(reduced, *params.band_sigma_px), coarse)
+
+
+class _LevelState:
+    """One pyramid level's share of `refine_regions`: labels, weights, per-pixel model owner and the (region, cell)
+    bins of the level, and the cost of model-map offsets reduced over those bins."""
+
+    def __init__(self, band: np.ndarray, level: int, labels: np.ndarray, weights: np.ndarray, ids: list[int],
+                 planes_px: dict[int, tuple[float, float, float]], aperture: FilterAperture,
+                 params: RefineParams) -> None:
+        from processing.disparity import AlignmentCost
+
+        height, width = band.shape[:2]
+        factor = 2.0 ** level
+        if level:
+            llabels = cv2.resize(labels.astype(np.int32), (width, height), interpolation=cv2.INTER_NEAREST)
+            lweights = cv2.resize(weights.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
+        else:
+            llabels, lweights = labels.astype(np.int32), weights.astype(np.float32)
+        count = len(ids)
+        lut = np.full(max(int(llabels.max()), max(ids)) + 1, count, np.int64)
+        lut[ids] = np.arange(count)
+        index = lut[llabels]                                  # region index per pixel, `count` = not refined
+        lplanes = np.array([rescale_plane(planes_px[i], 1.0 / factor) for i in ids] + [(0.0, 0.0, 0.0)])
+        xs = np.arange(width, dtype=np.float32)[None, :]
+        ys = np.arange(height, dtype=np.float32)[:, None]
+
+        def model_map(coef: np.ndarray, where: np.ndarray | None = None) -> np.ndarray:
+            c32 = coef.astype(np.float32)
+            at = index if where is None else where
+            return c32[at, 0] * xs + c32[at, 1] * ys + c32[at, 2]
+
+        radius = params.search_radius_px / factor
+        model = model_map(lplanes)
+        # windows reaching past the image border see replicated pixels, not the scene: leave them out
+        border = params.window_px // 2 + int(np.ceil(float(np.abs(model).max()) * 0.75 + radius)) + 1
+        inside = np.zeros((height, width), bool)
+        inside[border:-border or None, border:-border or None] = True
+        sizes = np.bincount(index.ravel(), minlength=count + 1)[:count]
+        inner = np.bincount(index[inside], minlength=count + 1)[:count]
+        keep_all = inner < 0.1 * sizes                        # tiny regions at the border keep their border pixels
+        use = inside | keep_all[np.minimum(index, count - 1)] & (index < count)
+        # Every pixel is warped with one region's model, so a window that straddles a boundary would mix two
+        # models. An occluding contour moves with the occluder: each pixel takes the model of the nearest region
+        # within half a window (a min filter over the regions' depth ranks), so the occluder's windows see its
+        # model on both sides of its contour; a pixel counts for its own region only when it kept its own model.
+        mean_model = np.bincount(index.ravel(), weights=model.ravel(), minlength=count + 1)[:count] / np.maximum(sizes, 1)
+        rank_of = np.empty(count + 1, np.int64)
+        rank_of[np.argsort(mean_model, kind="stable")] = np.arange(count)
+        rank_of[count] = count
+        by_rank = np.append(np.argsort(mean_model, kind="stable"), count)
+        reach_px = params.window_px // 2 + 1
+        kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * reach_px + 1, 2 * reach_px + 1))
+        owner = by_rank[cv2.erode(rank_of[index].astype(np.uint16), kernel, borderType=cv2.BORDER_REPLICATE)]
+        clear = owner == index
+        index_model = owner
+        model = model_map(lplanes, index_model)
+        w = np.where(use & clear & (index < count), lweights, 0.0).astype(np.float32)
+        wsum_region = np.bincount(index.ravel(), weights=w.ravel(), minlength=count + 1)[:count]
+        empty = wsum_region < 1e-6                            # no confident pixel: every pixel counts
+        if empty.any():
+            fill = empty[np.minimum(index, count - 1)] & (index < count) & use
+            w[fill] = 1.0
+        cell = max(8, int(params.cell_px / factor))
+        cells_x = (width + cell - 1) // cell
+        cells_y = (height + cell - 1) // cell
+        n_cells = cells_x * cells_y
+        cell_id = (np.arange(height)[:, None] // cell) * cells_x + np.arange(width)[None, :] // cell
+        bins = (np.where(w > 0, index, count) * n_cells + cell_id).ravel()
+        n_bins = (count + 1) * n_cells
+        wflat = w.ravel()
+        wsum = np.bincount(bins, weights=wflat, minlength=n_bins).reshape(count + 1, n_cells)[:count]
+        cxs = np.bincount(bins, weights=(w * xs).ravel(), minlength=n_bins).reshape(count + 1, n_cells)[:count]
+        cys = np.bincount(bins, weights=(w * ys).ravel(), minlength=n_bins).reshape(count + 1, n_cells)[:count]
+        cxs /= np.maximum(wsum, 1e-12)
+        cys /= np.maximum(wsum, 1e-12)
+        cost_model = AlignmentCost(band, aperture, params.window_px, params.noise_floor)
+
+
+        self.count, self.factor, self.wsum, self.cxs, self.cys = count, factor, wsum, cxs, cys
+        self.lplanes, self.index_model, self.model_map, self.model = lplanes, index_model, model_map, model
+        self.w, self.bins, self.n_bins, self.n_cells, self.cost_model = w, bins, n_bins, n_cells, cost_model
+
+    def curves(self, base: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+        """(count, n_cells, K) summed weighted cost at each offset added to the model map `base`."""
+        count, n_cells, n_bins, bins, w = self.count, self.n_cells, self.n_bins, self.bins, self.w
+        out = np.empty((count, n_cells, len(offsets)))
+
+        def reduce(k: int, cost: np.ndarray) -> None:
+            cost *= w
+            out[:, :, k] = np.bincount(bins, weights=cost.ravel(), minlength=n_bins).reshape(
+                count + 1, n_cells)[:count]
+
+        self.cost_model.offsets(base, offsets, reduce)
+        return out
 
 
 def refine_regions(planes: np.ndarray, aperture: FilterAperture, labels: np.ndarray, weights: np.ndarray,
@@ -790,83 +889,12 @@ def refine_regions(planes: np.ndarray, aperture: FilterAperture, labels: np.ndar
     if level == 0:
         # small grids: per-region crops are affordable and keep the most pixels of small objects
         return _refine_per_region(planes, aperture, labels, weights, planes_px, slanted, params)
-    height, width = prepared.band.shape[:2]
-    factor = 2.0 ** level
-    if level:
-        llabels = cv2.resize(labels.astype(np.int32), (width, height), interpolation=cv2.INTER_NEAREST)
-        lweights = cv2.resize(weights.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
-    else:
-        llabels, lweights = labels.astype(np.int32), weights.astype(np.float32)
-    count = len(ids)
-    lut = np.full(max(int(llabels.max()), max(ids)) + 1, count, np.int64)
-    lut[ids] = np.arange(count)
-    index = lut[llabels]                                  # region index per pixel, `count` = not refined
-    lplanes = np.array([rescale_plane(planes_px[i], 1.0 / factor) for i in ids] + [(0.0, 0.0, 0.0)])
-    xs = np.arange(width, dtype=np.float32)[None, :]
-    ys = np.arange(height, dtype=np.float32)[:, None]
-
-    def model_map(coef: np.ndarray, where: np.ndarray | None = None) -> np.ndarray:
-        c32 = coef.astype(np.float32)
-        at = index if where is None else where
-        return c32[at, 0] * xs + c32[at, 1] * ys + c32[at, 2]
-
-    radius = params.search_radius_px / factor
-    model = model_map(lplanes)
-    # windows reaching past the image border see replicated pixels, not the scene: leave them out
-    border = params.window_px // 2 + int(np.ceil(float(np.abs(model).max()) * 0.75 + radius)) + 1
-    inside = np.zeros((height, width), bool)
-    inside[border:-border or None, border:-border or None] = True
-    sizes = np.bincount(index.ravel(), minlength=count + 1)[:count]
-    inner = np.bincount(index[inside], minlength=count + 1)[:count]
-    keep_all = inner < 0.1 * sizes                        # tiny regions at the border keep their border pixels
-    use = inside | keep_all[np.minimum(index, count - 1)] & (index < count)
-    # Every pixel is warped with one region's model, so a window that straddles a boundary would mix two
-    # models. An occluding contour moves with the occluder: each pixel takes the model of the nearest region
-    # within half a window (a min filter over the regions' depth ranks), so the occluder's windows see its
-    # model on both sides of its contour; a pixel counts for its own region only when it kept its own model.
-    mean_model = np.bincount(index.ravel(), weights=model.ravel(), minlength=count + 1)[:count] / np.maximum(sizes, 1)
-    rank_of = np.empty(count + 1, np.int64)
-    rank_of[np.argsort(mean_model, kind="stable")] = np.arange(count)
-    rank_of[count] = count
-    by_rank = np.append(np.argsort(mean_model, kind="stable"), count)
-    reach_px = params.window_px // 2 + 1
-    kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * reach_px + 1, 2 * reach_px + 1))
-    owner = by_rank[cv2.erode(rank_of[index].astype(np.uint16), kernel, borderType=cv2.BORDER_REPLICATE)]
-    clear = owner == index
-    index_model = owner
-    model = model_map(lplanes, index_model)
-    w = np.where(use & clear & (index < count), lweights, 0.0).astype(np.float32)
-    wsum_region = np.bincount(index.ravel(), weights=w.ravel(), minlength=count + 1)[:count]
-    empty = wsum_region < 1e-6                            # no confident pixel: every pixel counts
-    if empty.any():
-        fill = empty[np.minimum(index, count - 1)] & (index < count) & use
-        w[fill] = 1.0
-    cell = max(8, int(params.cell_px / factor))
-    cells_x = (width + cell - 1) // cell
-    cells_y = (height + cell - 1) // cell
-    n_cells = cells_x * cells_y
-    cell_id = (np.arange(height)[:, None] // cell) * cells_x + np.arange(width)[None, :] // cell
-    bins = (np.where(w > 0, index, count) * n_cells + cell_id).ravel()
-    n_bins = (count + 1) * n_cells
-    wflat = w.ravel()
-    wsum = np.bincount(bins, weights=wflat, minlength=n_bins).reshape(count + 1, n_cells)[:count]
-    cxs = np.bincount(bins, weights=(w * xs).ravel(), minlength=n_bins).reshape(count + 1, n_cells)[:count]
-    cys = np.bincount(bins, weights=(w * ys).ravel(), minlength=n_bins).reshape(count + 1, n_cells)[:count]
-    cxs /= np.maximum(wsum, 1e-12)
-    cys /= np.maximum(wsum, 1e-12)
-    cost_model = AlignmentCost(prepared.band, aperture, params.window_px, params.noise_floor)
-
-    def curves(base: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-        """(count, n_cells, K) summed weighted cost at each offset added to the model map `base`."""
-        out = np.empty((count, n_cells, len(offsets)))
-
-        def reduce(k: int, cost: np.ndarray) -> None:
-            cost *= w
-            out[:, :, k] = np.bincount(bins, weights=cost.ravel(), minlength=n_bins).reshape(
-                count + 1, n_cells)[:count]
-
-        cost_model.offsets(base, offsets, reduce)
-        return out
+    state = _LevelState(prepared.band, level, labels, weights, ids, planes_px, aperture, params)
+    coarse_state = state
+    if prepared.coarse_band is not None and min(prepared.coarse_band.shape[:2]) >= 4 * params.window_px:
+        coarse_state = _LevelState(prepared.coarse_band, level + 1, labels, weights, ids, planes_px, aperture, params)
+    count, factor, wsum, cxs, cys = state.count, state.factor, state.wsum, state.cxs, state.cys
+    lplanes, index_model, model_map = state.lplanes, state.index_model, state.model_map
 
     def fit(coef: np.ndarray, offsets: np.ndarray, cells: np.ndarray) -> np.ndarray:
         """New plane per region from the cells' parabola minima (relative to `coef`)."""
@@ -899,23 +927,25 @@ def refine_regions(planes: np.ndarray, aperture: FilterAperture, labels: np.ndar
                 new[r] = (a, b, c + value)
         return new
 
-    coarse_step = params.coarse_step_px / factor
+    # pass 1 (on the coarse state's level): robust centre per region, the weighted median of its cells' minima
+    cs = coarse_state
+    coarse_step = params.coarse_step_px / cs.factor
+    radius = params.search_radius_px / cs.factor
     steps = int(np.ceil(radius / coarse_step - 1e-9)) if radius > 0 else 0
     coarse = np.arange(-steps, steps + 1) * coarse_step
-    coarse_cells = curves(model, coarse)
-    total = coarse_cells.sum(axis=1) / np.maximum(wsum.sum(axis=1), 1e-9)[:, None]
-    # robust centre per region: weighted median of its cells' coarse minima (a cell alone is noisy)
+    coarse_cells = cs.curves(cs.model, coarse)
+    total = coarse_cells.sum(axis=1) / np.maximum(cs.wsum.sum(axis=1), 1e-9)[:, None]
     coef = lplanes[:count].copy()
-    cell_best = coarse[np.argmin(coarse_cells, axis=2)]
+    cell_best = coarse[np.argmin(coarse_cells, axis=2)] * (cs.factor / factor)      # in px of the fine level
     for r in range(count):
-        used = wsum[r] > 0.05 * max(float(wsum[r].max()), 1e-12)
+        used = cs.wsum[r] > 0.05 * max(float(cs.wsum[r].max()), 1e-12)
         if used.any():
             order = np.argsort(cell_best[r][used])
-            cum = np.cumsum(wsum[r][used][order])
+            cum = np.cumsum(cs.wsum[r][used][order])
             coef[r, 2] += float(cell_best[r][used][order][np.searchsorted(cum, cum[-1] / 2)])
     fine = np.arange(-params.fine_count, params.fine_count + 1) * (params.level_fine_step_px / factor)
     if params.fine_count > 0:
-        coef = fit(coef, fine, curves(model_map(np.vstack([coef, [(0.0, 0.0, 0.0)]]), index_model), fine))
+        coef = fit(coef, fine, state.curves(model_map(np.vstack([coef, [(0.0, 0.0, 0.0)]]), index_model), fine))
     results, dips = {}, {}
     for r, region_id in enumerate(ids):
         mean = float(total[r].mean())
@@ -1036,3 +1066,190 @@ def _refine_per_region(planes: np.ndarray, aperture: FilterAperture, labels: np.
             new = (a, b, lplane[2] + value)
         results[region_id] = rescale_plane(new, factor)
     return results, dips
+
+
+@dataclass(frozen=True)
+class BoundaryParams:
+    """Narrow-band reassignment of region labels (see `snap_boundaries`)."""
+
+    band_px: int = 5                    # half-width (analysis px) of the band reconsidered on the analysis grid:
+                                        # the sketch's boundaries are off by up to about 4 analysis px
+    model_window_px: int = 21           # side of the window (analysis px) of each region's local colour model
+    interior_px: int = 2                # the model uses region pixels this far inside (analysis px)
+    min_contrast: float = 1.0           # the two regions' local models must differ this much (feature units)
+    chroma_scale: float = 0.045         # feature units: chromaticity / chroma_scale, log luminance * lum_weight
+    lum_weight: float = 0.5
+
+
+def _boundary_features(rgb: np.ndarray, params: BoundaryParams) -> np.ndarray:
+    """(..., 3) float32: chromaticity (r, g) / chroma_scale and log luminance * lum_weight."""
+    total = rgb.sum(axis=-1) + np.float32(1e-4)
+    out = np.empty(rgb.shape[:-1] + (3,), np.float32)
+    np.divide(rgb[..., 0], total * np.float32(params.chroma_scale), out=out[..., 0])
+    np.divide(rgb[..., 1], total * np.float32(params.chroma_scale), out=out[..., 1])
+    out[..., 2] = np.log(total / np.float32(3.0) + np.float32(1e-3)) * np.float32(params.lum_weight)
+    return out
+
+
+class _LocalColourModels:
+    """Per region, the mean boundary features of its interior pixels in a window around each analysis pixel."""
+
+    def __init__(self, labels_an: np.ndarray, aligned_an: np.ndarray, params: BoundaryParams) -> None:
+        self.labels, self.params = labels_an, params
+        self.features = _boundary_features(np.asarray(aligned_an, np.float32)[::2, ::2], params)   # every 2nd px
+        self.kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * params.interior_px + 1,) * 2)
+        self.maps: dict[int, tuple[int, int, np.ndarray]] = {}
+
+    def _map(self, region_id: int) -> tuple[int, int, np.ndarray]:
+        """(row0, col0, sums (h, w, 4): feature sums and pixel count) over the region's bounding box + window."""
+        if region_id not in self.maps:
+            mask = (self.labels == region_id).astype(np.uint8)
+            inner = cv2.erode(mask, self.kernel, borderType=cv2.BORDER_REPLICATE)[::2, ::2]   # away from mixed px
+            if not inner.any():
+                inner = mask[::2, ::2]
+            h, w = inner.shape
+            half = self.params.model_window_px // 4               # the window on the grid of every 2nd pixel
+            x, y, bw, bh = cv2.boundingRect(inner)
+            if bw == 0:
+                self.maps[region_id] = (0, 0, np.zeros((1, 1, 4), np.float32))
+                return self.maps[region_id]
+            r0, r1 = max(0, y - half), min(h, y + bh + half)
+            c0, c1 = max(0, x - half), min(w, x + bw + half)
+            m = inner[r0:r1, c0:c1].astype(np.float32)
+            stack = np.empty((r1 - r0, c1 - c0, 4), np.float32)
+            np.multiply(self.features[r0:r1, c0:c1], m[..., None], out=stack[..., :3])
+            stack[..., 3] = m
+            size = (2 * half + 1, 2 * half + 1)
+            self.maps[region_id] = (r0, c0, cv2.boxFilter(stack, cv2.CV_32F, size, normalize=False,
+                                                          borderType=cv2.BORDER_CONSTANT))
+        return self.maps[region_id]
+
+    def lookup(self, cand: np.ndarray, ya: np.ndarray, xa: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Models (2, N, 3) of the candidate regions `cand` (2, N) at analysis pixels (ya, xa), and where defined."""
+        models = np.zeros(cand.shape + (3,), np.float32)
+        support = np.zeros(cand.shape, bool)
+        order = np.argsort(cand, axis=None, kind="stable")
+        flat = cand.ravel()[order]
+        starts = np.flatnonzero(np.r_[True, flat[1:] != flat[:-1]])
+        ends = np.r_[starts[1:], flat.size]
+        for start, end in zip(starts, ends):
+            at = order[start:end]
+            r0, c0, sums = self._map(int(flat[start]))
+            yy, xx = ya[at % ya.size] // 2 - r0, xa[at % xa.size] // 2 - c0
+            ok = (yy >= 0) & (yy < sums.shape[0]) & (xx >= 0) & (xx < sums.shape[1])
+            got = np.zeros((at.size, 4), np.float32)
+            got[ok] = sums[yy[ok], xx[ok]]
+            has = got[:, 3] > 0.5
+            models.reshape(-1, 3)[at[has]] = got[has, :3] / got[has, 3:4]
+            support.reshape(-1)[at[has]] = True
+        return models, support
+
+
+def _reassign(planes: np.ndarray, aperture: FilterAperture, ys: np.ndarray, xs: np.ndarray, cand: np.ndarray,
+              current: np.ndarray, coef: np.ndarray, models: np.ndarray, support: np.ndarray,
+              params: BoundaryParams, smooth: bool) -> tuple[np.ndarray, np.ndarray]:
+    """For band pixels (ys, xs) of `planes` with candidate labels `cand` (2, N): (pixels to change, new labels).
+
+    Each pixel's colour is sampled with each candidate's disparity model (`coef[id]` = (a, b, c) in px of
+    `planes`: channel c at x + d s_c, so without colour fringes) and compared with the candidate's local model;
+    the nearer wins, where the two models differ enough and the current label is one of the two."""
+    from processing.disparity import channel_shifts
+
+    shifts = channel_shifts(aperture).astype(np.float32)
+    fx, fy = xs.astype(np.float32), ys.astype(np.float32)
+    n = ys.size
+    height, width = planes.shape[:2]
+    flat = planes.reshape(-1)
+    dist = np.empty((2, n), np.float32)
+    for s in range(2):
+        k = cand[s]
+        d = (coef[k, 0] * fx + coef[k, 1] * fy + coef[k, 2]).astype(np.float32)
+        rgb = np.empty((n, 3), np.float32)
+        for c in range(3):
+            # bilinear sampling at (x + d s_cx, y + d s_cy), borders replicated: gathers from the interleaved planes
+            sx = np.clip(fx + d * shifts[c, 0], 0, width - 1)
+            sy = np.clip(fy + d * shifts[c, 1], 0, height - 1)
+            x0 = np.minimum(sx.astype(np.int64), width - 2)
+            y0 = np.minimum(sy.astype(np.int64), height - 2)
+            wx, wy = sx - x0, sy - y0
+            at = (y0 * width + x0) * 3 + c
+            top = flat[at] * (1 - wx) + flat[at + 3] * wx
+            at += 3 * width
+            bottom = flat[at] * (1 - wx) + flat[at + 3] * wx
+            rgb[:, c] = top * (1 - wy) + bottom * wy
+        diff = _boundary_features(rgb, params) - models[s]
+        dist[s] = np.einsum("ij,ij->i", diff, diff)
+    score = dist[0] - dist[1]
+    if smooth:
+        # the decision box-smoothed over 3x3 px against noise, inside the band's bounding box
+        y0, x0 = ys.min(), xs.min()
+        grid = np.zeros((ys.max() + 1 - y0, xs.max() + 1 - x0), np.float32)
+        grid[ys - y0, xs - x0] = score
+        score = cv2.boxFilter(grid, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)[ys - y0, xs - x0]
+    gap = models[0] - models[1]
+    decide = support[0] & support[1] & (np.einsum("ij,ij->i", gap, gap) >= params.min_contrast ** 2) & (
+        (current == cand[0]) | (current == cand[1]))
+    new = np.where(score > 0, cand[1], cand[0])
+    change = decide & (new != current)
+    return change, new[change]
+
+
+def snap_boundaries(planes: np.ndarray, aperture: FilterAperture, labels_full: np.ndarray,
+                    small: np.ndarray, labels_an: np.ndarray, aligned_an: np.ndarray, coef: np.ndarray,
+                    factor: int, params: BoundaryParams = BoundaryParams()) -> np.ndarray:
+    """Region labels at processing resolution with boundaries that follow the image edges.
+
+    `labels_full` is the analysis-grid `labels_an` (grid of `small`, `factor` times coarser than `planes`)
+    upsampled by nearest neighbour: its boundaries are blocks of `factor` px and off by up to a few analysis px.
+    Only pixels near a label change are reconsidered, each between the lowest and highest label of its
+    neighbourhood: its colour, sampled with each candidate's disparity model (`coef[id]` = (a, b, c), processing
+    px), is compared with each candidate's local colour model (mean features of the region's interior pixels in
+    a window of `aligned_an`); the nearer wins; where the two models barely differ (one colour, two depths) the
+    label is kept. Two passes: on the analysis grid within `band_px` (the decision box-smoothed over 3x3 px),
+    then at processing resolution within one analysis px of the new boundaries (per pixel: smoothing measured no
+    better there). Returns a new int32 label map (processing resolution)."""
+    h_an, w_an = labels_an.shape
+    height, width = labels_full.shape
+    local = _LocalColourModels(labels_an, aligned_an, params)
+    coef_an = coef.astype(np.float64).copy()              # the models on the analysis grid (rescale_plane inverse)
+    coef_an[:, 2] = (coef[:, 2] + (coef[:, 0] + coef[:, 1]) * (0.5 * factor - 0.5)) / factor
+    out = labels_full.astype(np.int32, copy=True)
+    dy, dx = np.divmod(np.arange(factor * factor), factor)
+
+    def blocks(ya: np.ndarray, xa: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The processing pixels of analysis pixels (ya, xa): rows, columns, and the index of their block."""
+        ys = (ya[:, None] * factor + dy[None, :]).ravel()
+        xs = (xa[:, None] * factor + dx[None, :]).ravel()
+        owner = np.repeat(np.arange(ya.size), factor * factor)
+        ok = (ys < height) & (xs < width)
+        return ys[ok], xs[ok], owner[ok]
+
+    def band(labels: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        lab16 = labels.astype(np.uint16)
+        kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * radius + 1, 2 * radius + 1))
+        lo = cv2.erode(lab16, kernel, borderType=cv2.BORDER_REPLICATE)
+        hi = cv2.dilate(lab16, kernel, borderType=cv2.BORDER_REPLICATE)
+        ya, xa = np.nonzero(lo != hi)
+        return ya, xa, np.stack([lo[ya, xa].astype(np.int32), hi[ya, xa].astype(np.int32)])
+
+    # pass 1: the analysis grid, a band of `band_px`
+    ya, xa, cand = band(labels_an, params.band_px)
+    if ya.size == 0:
+        return out
+    models, support = local.lookup(cand, ya, xa)
+    labels_new = labels_an.astype(np.int32, copy=True)
+    change, new = _reassign(np.ascontiguousarray(small, dtype=np.float32), aperture, ya, xa, cand, labels_an[ya, xa], coef_an, models, support, params, True)
+    labels_new[ya[change], xa[change]] = new
+    ys, xs, owner = blocks(ya[change], xa[change])
+    out[ys, xs] = new[owner]
+    # pass 2: processing resolution, within one analysis px of the new boundaries
+    ya, xa, cand = band(labels_new, 1)
+    if ya.size == 0:
+        return out
+    models, support = local.lookup(cand, ya, xa)
+    ys, xs, owner = blocks(ya, xa)
+    cand_full = cand[:, owner]
+    change, new = _reassign(np.ascontiguousarray(planes, dtype=np.float32), aperture, ys, xs, cand_full,
+                            out[ys, xs], coef, models[:, owner], support[:, owner], params, False)
+    out[ys[change], xs[change]] = new
+    return out
