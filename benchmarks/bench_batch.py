@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import resource
 import shutil
 import statistics
 import subprocess
@@ -38,17 +37,25 @@ def make_inputs(folder: Path, count: int, size: str) -> None:
     print()
 
 
+# Runs `mca process` and prints the largest peak RSS among the processes it started (workers included):
+# a fresh wrapper per run, so one configuration's peak does not carry over into the next.
+WRAPPER = """
+import resource, subprocess, sys
+subprocess.run(sys.argv[1:], check=False, stdout=subprocess.DEVNULL)
+print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
+"""
+
+
 def run_once(inputs: Path, workers: int) -> tuple[float, float]:
     """Seconds for one `mca process` run and the peak RSS (MiB) of the largest process it started."""
     out = Path(tempfile.mkdtemp(prefix="bench-batch-out-"))
-    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     started = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "capture.cli", "process", str(inputs), "--out", str(out),
-                    "--workers", str(workers), "--quiet"], check=False, stdout=subprocess.DEVNULL)
+    done = subprocess.run([sys.executable, "-c", WRAPPER, sys.executable, "-m", "capture.cli", "process", str(inputs),
+                           "--out", str(out), "--workers", str(workers), "--quiet"],
+                          check=False, capture_output=True, text=True)
     seconds = time.perf_counter() - started
-    peak_kib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     shutil.rmtree(out, ignore_errors=True)
-    return seconds, max(peak_kib, before) / 1024.0
+    return seconds, int(done.stdout.strip().splitlines()[-1]) / 1024.0
 
 
 def main() -> None:
