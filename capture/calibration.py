@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from capture.catalog import open_database
 from processing.calibration import (
     CalibrationFit,
     LensModel,
@@ -103,10 +104,7 @@ class CalibrationStore:
 
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
-        self.db = sqlite3.connect(str(self.path))
-        self.db.execute("PRAGMA journal_mode=WAL")
-        self.db.executescript(_SCHEMA)
-        self.db.commit()
+        self.db = open_database(self.path, _SCHEMA)
 
     def close(self) -> None:
         self.db.close()

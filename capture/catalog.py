@@ -47,15 +47,21 @@ class ShotRow:
     message: str | None
 
 
+def open_database(path: Path, schema: str) -> sqlite3.Connection:
+    """Open (creating) the folder's SQLite catalog in WAL mode with `schema` applied; shared by every table in it."""
+    db = sqlite3.connect(str(path))
+    db.execute("PRAGMA journal_mode=WAL")
+    db.executescript(schema)
+    db.commit()
+    return db
+
+
 class Catalog:
     """A small SQLite catalog; every change is committed at once so a crash loses nothing already recorded."""
 
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
-        self.db = sqlite3.connect(str(self.path))
-        self.db.execute("PRAGMA journal_mode=WAL")
-        self.db.executescript(_SCHEMA)
-        self.db.commit()
+        self.db = open_database(self.path, _SCHEMA)
 
     def close(self) -> None:
         self.db.close()

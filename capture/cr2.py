@@ -41,7 +41,6 @@ from __future__ import annotations
 import io
 import os
 import struct
-import tempfile
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -615,15 +614,6 @@ def write_cr2(
         bits_per_sample=bits_per_sample,
         preview=preview,
     )
-    target = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return target
+    from capture.outputs import write_bytes_atomic
+
+    return write_bytes_atomic(path, data)

@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import io
 import json
-import os
-import uuid
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -84,20 +82,6 @@ def capture_cr2_bytes(capture: SimulatedCapture, profile: CameraProfile) -> byte
                      white_level=capture.sensor.white_level, metadata=metadata)
 
 
-def _write_atomic(path: Path, data: bytes) -> Path:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
-    try:
-        with open(tmp, "wb") as handle:
-            handle.write(data)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
-
-
 def truth_json(truth: dict[str, Any]) -> str:
     """The truth dictionary as JSON text (numpy scalars converted, floats kept exact)."""
     def convert(value: Any) -> Any:
@@ -118,18 +102,20 @@ def write_capture(capture: SimulatedCapture, profile: CameraProfile, out_dir: st
     import cv2
     import tifffile
 
+    from capture.outputs import write_bytes_atomic
+
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     name = capture.scene
     paths = {}
-    paths["cr2"] = _write_atomic(out / f"{name}.CR2", capture_cr2_bytes(capture, profile))
-    paths["truth"] = _write_atomic(out / f"{name}.truth.json", truth_json(capture.truth).encode("utf-8"))
+    paths["cr2"] = write_bytes_atomic(out / f"{name}.CR2", capture_cr2_bytes(capture, profile))
+    paths["truth"] = write_bytes_atomic(out / f"{name}.truth.json", truth_json(capture.truth).encode("utf-8"))
     buffer = io.BytesIO()
     tifffile.imwrite(buffer, capture.depth_mm.astype(np.float32), compression="zlib",
                      metadata={"unit": "mm", "what": "distance from the lens of the front-most surface"})
-    paths["depth"] = _write_atomic(out / f"{name}.depth.tiff", buffer.getvalue())
+    paths["depth"] = write_bytes_atomic(out / f"{name}.depth.tiff", buffer.getvalue())
     ok, png = cv2.imencode(".png", capture.labels.astype(np.uint16), [cv2.IMWRITE_PNG_COMPRESSION, 3])
     if not ok:
         raise OSError(f"could not encode the label image of scene '{name}' as PNG")
-    paths["labels"] = _write_atomic(out / f"{name}.labels.png", png.tobytes())
+    paths["labels"] = write_bytes_atomic(out / f"{name}.labels.png", png.tobytes())
     return paths
