@@ -15,7 +15,6 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import math
-import sqlite3
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
