@@ -26,14 +26,13 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Iterator
 
 import cv2
 import numpy as np
 
 from processing.camera import FilterAperture
 from processing.depth import depth_map_mm, region_depth
-from processing.disparity import (DisparityMap, DisparityParams, band_pass, estimate_disparity, parallel_map,
+from processing.disparity import (DisparityParams, estimate_disparity, parallel_map,
                                  sample_shifted)
 from processing.mpi import all_in_focus, multi_plane_images
 from processing.optics import MCAOptics

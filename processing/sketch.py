@@ -878,7 +878,7 @@ def refine_regions(planes: np.ndarray, aperture: FilterAperture, labels: np.ndar
 
     Returns the refined planes and, per region, the depth of the cost dip (a confidence in [0, 1]).
     """
-    from processing.disparity import AlignmentCost, subpixel_minimum
+    from processing.disparity import subpixel_minimum
 
     ids = sorted(planes_px)
     if not ids:

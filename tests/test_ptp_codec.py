@@ -10,7 +10,6 @@ from hypothesis import strategies as st
 from devices.ptp.codec import ProtocolError, Reader, pack_command, pack_data, pack_string, parse_container, parse_header
 from devices.ptp.codes import ContainerType, EosProp
 from devices.ptp.datasets import (
-    DeviceInfo,
     DevicePropDesc,
     ObjectInfo,
     StorageInfo,

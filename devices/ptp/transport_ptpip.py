@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 from devices.ptp.codec import Container, ProtocolError, Reader, parse_params
 from devices.ptp.codes import ContainerType
-from devices.ptp.transport import DataSink, DeviceDisconnected, Response, Transport, TransportError, TransportTimeout
+from devices.ptp.transport import DeviceDisconnected, Response, Transport, TransportError, TransportTimeout
 
 DEFAULT_PORT = 15740
 PROTOCOL_VERSION = 0x00010000

@@ -24,7 +24,7 @@ from devices.ptp.codec import (
     parse_header,
 )
 from devices.ptp.codes import CANON_VENDOR_ID, ContainerType, Resp
-from devices.ptp.transport import DataSink, DeviceDisconnected, Response, Transport, TransportError, TransportTimeout
+from devices.ptp.transport import DeviceDisconnected, Response, Transport, TransportError, TransportTimeout
 
 PTP_CLASS = (6, 1, 1)
 REQ_CANCEL = 0x64

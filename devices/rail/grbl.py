@@ -11,7 +11,6 @@ from devices.rail.base import (
     RailAlarm,
     RailCommandError,
     RailDisconnected,
-    RailError,
     RailProtocolError,
     RailStatus,
     RailTimeout,

@@ -13,11 +13,10 @@ import time
 import uuid
 
 from devices.ptp.codec import ProtocolError
-from devices.ptp.transport import DeviceDisconnected, TransportError
+from devices.ptp.transport import TransportError
 from devices.ptp.transport_ptpip import (
     DATA,
     END_DATA,
-    EVENT,
     INIT_COMMAND_REQUEST,
     INIT_EVENT_ACK,
     INIT_EVENT_REQUEST,
