@@ -188,8 +188,8 @@ def _layer_rgba8(layer: Any, srgb8_of: Callable[[np.ndarray], np.ndarray]) -> np
     from the display image converted once for all layers (`srgb8_of`, cached by the caller), instead
     of a full-size float RGBA array per layer; sRGB of display x 1 is sRGB of display, of x 0 is 0.
     """
-    source = getattr(layer, "_source", None)
-    if getattr(layer, "_rgba", None) is None and source is not None:
+    source = layer.lazy_source
+    if source is not None:
         display, labels = source
         mask = np.asarray(labels) == layer.region_id
         out = np.zeros(mask.shape + (4,), np.uint8)
@@ -310,9 +310,8 @@ def write_outputs(out_dir: Path, result: DepthResult, loaded: LoadedInput, label
 
         convert(result.all_in_focus)
         for layer in layers:
-            source = getattr(layer, "_source", None)
-            if getattr(layer, "_rgba", None) is None and source is not None:
-                convert(source[0])
+            if layer.lazy_source is not None:
+                convert(layer.lazy_source[0])
 
         def write_depth() -> list[Path]:
             written = []

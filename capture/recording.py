@@ -343,8 +343,8 @@ def layer_rgba_crop(layer: Any, window: tuple[slice, slice]) -> np.ndarray:
     alone gives the same values.
     """
     rows, cols = window
-    source = getattr(layer, "_source", None)
-    if getattr(layer, "_rgba", None) is None and source is not None:
+    source = layer.lazy_source
+    if source is not None:
         display, labels = source
         alpha = (np.asarray(labels)[rows, cols] == layer.region_id).astype(np.float32)
         rgba = np.empty(alpha.shape + (4,), np.float32)

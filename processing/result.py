@@ -78,6 +78,12 @@ class MultiPlaneImage:
         return rgba
 
     @property
+    def lazy_source(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(display image, labels) when `rgba` is built on demand as display x mask with alpha = mask
+        (mask = labels == region_id), so that a caller can convert just the part it needs; else None."""
+        return self._source if self._rgba is None else None
+
+    @property
     def shape(self) -> tuple[int, int]:
         return tuple(self._rgba.shape[:2]) if self._rgba is not None else tuple(self._source[1].shape)  # type: ignore
 
