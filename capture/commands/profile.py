@@ -50,7 +50,7 @@ def register(app: typer.Typer) -> None:
 
         for name in builtin_names():
             p = load_profile(name)
-            optics = "disparity only" if not p.has_optics else f"focus {p.lens.focus_distance_mm:.0f} mm"
+            optics = "disparity only" if not p.has_optics else f"focus {p.lens.focus_distance_mm:.1f} mm"
             typer.echo(f"{name:<12} {p.model:<40} d_a {p.aperture.baseline_mm:6.2f}  {optics}")
 
     @profile_app.command("show")
