@@ -7,9 +7,10 @@ import pytest
 from capture.profiles import load_profile
 from processing.evaluate import bayer_planes
 from processing.mpi import composite
-from processing.pipeline import PipelineParams, RGGB_HALF_RES_OFFSETS_PX, default_disparity_range_px, run_pipeline
+from processing.pipeline import (PipelineParams, RGGB_HALF_RES_OFFSETS_PX, align_channel_samples,
+                                 default_disparity_range_px, run_pipeline)
 from processing.sketch import BoundaryParams
-from processing.scenes import paper_scene
+from processing.scenes import paper_scene, target_scene
 from processing.simulate import SensorModel, SimulationOptics, render
 
 
@@ -41,6 +42,40 @@ def test_search_range_covers_the_specified_depths():
     low, high = default_disparity_range_px(load_profile("paper-70d").aperture, optics, (3648, 5472))
     assert low <= optics.disparity_px_at_distance(optics.focus_distance_mm - 150) <= -27.0
     assert high >= optics.disparity_px_at_distance(optics.focus_distance_mm + 300) >= 34.0
+
+
+def test_bayer_alignment_moves_channels_by_exactly_their_offsets():
+    # a smooth pattern sampled at the RGGB sites of the half-resolution planes: red 1/4 px up-left, blue 1/4 px
+    # down-right of the block centre. OpenCV's INTER_CUBIC (Keys a = -0.75) moved them 0.297 px instead of 0.25
+    # (max error 1.0e-2 here), which read as -0.1 to -0.2 px of disparity on every in-focus object
+    ys, xs = np.mgrid[0:200, 0:300].astype(np.float64)
+
+    def pattern(x, y):
+        return 0.5 + 0.2 * np.sin(2 * np.pi * x / 23 + 0.3) + 0.15 * np.cos(2 * np.pi * y / 17) \
+            + 0.1 * np.sin(2 * np.pi * (x + y) / 11)
+
+    planes = np.dstack([pattern(xs + dx, ys + dy) for dx, dy in RGGB_HALF_RES_OFFSETS_PX]).astype(np.float32)
+    aligned = align_channel_samples(planes, RGGB_HALF_RES_OFFSETS_PX)
+    error = np.abs(aligned[8:-8, 8:-8] - pattern(xs, ys)[8:-8, 8:-8, None])
+    assert error.max() < 2e-3                                   # 8.4e-4 measured
+
+
+def test_target_at_the_focus_distance_reads_zero_disparity_through_the_bayer_mosaic():
+    # full size, as `mca evaluate`: a textured plane exactly in focus, sampled at its Bayer sites (not cosited)
+    optics = SimulationOptics.from_profile(load_profile("paper-70d"), 1.0)
+    sensor = SensorModel()
+    rendering = render(target_scene(optics.focus_distance_mm), optics, sensor, seed=0)
+    planes = bayer_planes(rendering.mosaic, sensor.black_level, sensor.white_level)
+    recorder = ListRecorder()
+    result = run_pipeline(planes, optics.aperture, optics.mca, pixel_scale=2.0,
+                          channel_offsets_px=RGGB_HALF_RES_OFFSETS_PX, recorder=recorder)
+    per_pixel = recorder.stages["disparity"]["disparity_px"]
+    h, w = per_pixel.shape
+    # measured +0.010 px on the analysis grid and +0.004 px refined (INTER_CUBIC alignment: -0.19 and -0.12 px)
+    assert abs(float(np.median(per_pixel[h // 8:-h // 8, w // 8:-w // 8]))) < 0.03
+    target = max(result.regions, key=lambda r: r.pixels)
+    assert target.in_focus and abs(target.disparity_px) < 0.02
+    assert abs(target.inter_object_depth_mm) < 0.15
 
 
 def test_regions_order_and_depths(paper_a):
@@ -123,8 +158,10 @@ def _evaluate_paper_scene(name: str, scale: float, seed: int = 0):
 
 def test_paper_e_spatula_is_one_region_behind_its_three_occluders():
     """The wooden spatula (+102 mm, wood close to the wall's colour) is cut in three by a tomato and the carrot
-    and partly hidden by the other tomato: one region, behind all three, at the right depth (half size)."""
-    evaluation, _ = _evaluate_paper_scene("paper-e", 0.5)
+    and partly hidden by the other tomato: one region, behind all three, at the right depth (full size, as
+    `mca evaluate`; at half size the per-region crop refinement reads the tomato D ~8 % far, a known gap
+    logged in docs/pipeline.md)."""
+    evaluation, _ = _evaluate_paper_scene("paper-e", 1.0)
     assert evaluation.region_count == evaluation.true_region_count == 6       # five objects and the wall
     assert evaluation.order_correct, evaluation.notes                          # ranks and every true occlusion
     rows = {r.label: r for r in evaluation.rows}
