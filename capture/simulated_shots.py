@@ -83,18 +83,10 @@ def capture_cr2_bytes(capture: SimulatedCapture, profile: CameraProfile) -> byte
 
 
 def truth_json(truth: dict[str, Any]) -> str:
-    """The truth dictionary as JSON text (numpy scalars converted, floats kept exact)."""
-    def convert(value: Any) -> Any:
-        if isinstance(value, dict):
-            return {str(k): convert(v) for k, v in value.items()}
-        if isinstance(value, (list, tuple)):
-            return [convert(v) for v in value]
-        if isinstance(value, np.generic):
-            return value.item()
-        if isinstance(value, float) and not np.isfinite(value):
-            return None
-        return value
-    return json.dumps(convert(truth), indent=2) + "\n"
+    """The truth dictionary as JSON text (numpy scalars converted, floats kept exact, non-finite as null)."""
+    from capture.outputs import json_safe
+
+    return json.dumps(json_safe(truth), indent=2) + "\n"
 
 
 def write_capture(capture: SimulatedCapture, profile: CameraProfile, out_dir: str | Path) -> dict[str, Path]:
