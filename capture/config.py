@@ -195,8 +195,12 @@ __all__ = ["Config", "ConfigError", "ENV_VAR", "KEYS", "SYSTEM_CONFIG", "apply_f
            "load_config", "read_config_file", "user_config_path", "validate_value"]
 
 
-def config_default(key: str) -> Any:
-    """The configured value of `key` for a command-line flag the user left out (defaults, then config files)."""
-    if key not in KEYS:
-        raise KeyError(key)
-    return getattr(load_config(), key)
+def fill_from_config(**given: Any) -> dict[str, Any]:
+    """The flags as given, with those left out (None) taken from the config (defaults, then files, read once)."""
+    unknown = set(given) - set(KEYS)
+    if unknown:
+        raise KeyError(", ".join(sorted(unknown)))
+    if all(value is not None for value in given.values()):
+        return dict(given)
+    config = load_config()
+    return {key: getattr(config, key) if value is None else value for key, value in given.items()}

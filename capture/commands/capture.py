@@ -23,13 +23,13 @@ def capture(
     """Capture with a tethered camera; every shot is verified, fsynced and catalogued in OUT/catalog.sqlite."""
     import threading
 
-    from capture.config import ConfigError, config_default
+    from capture.config import ConfigError, fill_from_config
     from capture.tether import TetherSession, camera_factory
     from devices.ptp.transport import TransportError
 
     try:
-        camera = camera if camera is not None else config_default("camera")
-        profile = profile if profile is not None else config_default("profile")
+        chosen = fill_from_config(camera=camera, profile=profile)
+        camera, profile = chosen["camera"], chosen["profile"]
     except ConfigError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc

@@ -59,13 +59,12 @@ def register(app: typer.Typer) -> None:
         import sys
 
         from capture.batch import BatchError, LineProgress, RichProgress, SilentProgress, print_summary, run_batch
-        from capture.config import ConfigError, config_default
+        from capture.config import ConfigError, fill_from_config
         from processing.camera import ProfileError
 
         try:
-            profile = profile if profile is not None else config_default("profile")
-            workers = workers if workers is not None else config_default("workers")
-            out = out if out is not None else config_default("output_dir")
+            chosen = fill_from_config(profile=profile, workers=workers, output_dir=out)
+            profile, workers, out = chosen["profile"], chosen["workers"], chosen["output_dir"]
         except ConfigError as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(2)
