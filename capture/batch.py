@@ -414,12 +414,13 @@ class BatchReport:
 
 def make_runner(out_root: Path, profile: CameraProfile, *, workers: int = 1, cluster: str | None = None,
                 force: bool = False, pipeline: PipelineFunction | None = None,
-                on_stage: Callable[[Task, str], None] | None = None) -> Runner:
+                on_stage: Callable[[Task, str], None] | None = None, recorder: Any = None) -> Runner:
     """The runner for the options: a Dask client for `cluster`, else a process pool, or inline for one worker.
 
     `on_stage(task, stage)` hears each file's stages (not from a Dask cluster).
     """
-    job = _Job(out_root=out_root, profile=profile, force=force, pipeline=pipeline, on_stage=on_stage)
+    job = _Job(out_root=out_root, profile=profile, force=force, pipeline=pipeline, on_stage=on_stage,
+               recorder=recorder)
     if cluster:
         return DaskRunner(job, cluster)
     if workers < 1:
@@ -463,9 +464,8 @@ def run_batch(sources: list[Path], out_root: Path, profile: CameraProfile, *, wo
     progress = progress or SilentProgress()
     report = BatchReport()
     runner = make_runner(out_root, profile, workers=workers, cluster=cluster, force=force, pipeline=pipeline,
-                         on_stage=progress.stage if getattr(progress, "wants_stages", False) else None)
-    if recorder is not None:
-        runner.job.recorder = recorder  # type: ignore[attr-defined]
+                         on_stage=progress.stage if getattr(progress, "wants_stages", False) else None,
+                         recorder=recorder)
     recording_id = str(uuid.uuid4()) if record is not None else None
     names: dict[str, Path] = {}
     known: set[Path] = set()
