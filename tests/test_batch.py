@@ -91,8 +91,9 @@ def test_watch_processes_files_as_they_arrive(tmp_path, profile):
     holder: dict = {}
 
     def watch() -> None:
-        holder["report"] = run_batch([inbox], tmp_path / "out", profile, watch=True, watch_timeout_s=2.0,
-                                     poll_interval_s=0.1, settle_s=1.0, pipeline=fake_pipeline)
+        # settle 2 s against a 0.6 s pause mid-copy: margin for a writer stalled on two busy cores
+        holder["report"] = run_batch([inbox], tmp_path / "out", profile, watch=True, watch_timeout_s=3.0,
+                                     poll_interval_s=0.1, settle_s=2.0, pipeline=fake_pipeline)
 
     thread = threading.Thread(target=watch)
     thread.start()

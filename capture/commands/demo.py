@@ -7,7 +7,7 @@ from pathlib import Path
 import typer
 
 
-def _summarise(shot_path: Path | None, result_dir: str) -> list[str]:
+def _summarise(result_dir: str) -> list[str]:
     result_file = Path(result_dir) / "result.json"
     if not result_file.exists():
         return [f"    no result.json in {result_dir}"]
@@ -82,7 +82,7 @@ def register(app: typer.Typer) -> None:
         for shot in results:
             typer.echo(f"shot {shot.shot_id}: {shot.status} {shot.path.name if shot.path else ''}")
             if shot.status == "processed":
-                for line in _summarise(shot.path, shot.message):
+                for line in _summarise(shot.message):
                     typer.echo(line)
             else:
                 failed += 1
