@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import sqlite3
-import time
+import datetime
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,7 +27,8 @@ CREATE TABLE IF NOT EXISTS shots (
 
 
 def _now() -> str:
-    return time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime()) + f".{int(time.time() * 1000) % 1000:03d}"
+    """Local time to the millisecond, from one clock reading (seconds and milliseconds must agree)."""
+    return datetime.datetime.now().isoformat(timespec="milliseconds")
 
 
 @dataclass(frozen=True)

@@ -92,3 +92,18 @@ def test_tethered_mode_downloads_shutter_button_shots(tmp_path: Path) -> None:
     results = session.tethered(lambda: False, max_shots=2)
     assert [r.path.read_bytes() for r in results] == [rig.camera.file_on_card(f"IMG_000{i}.CR2") for i in (1, 2)]
     session.close()
+
+
+def test_catalog_times_never_run_backwards_across_a_second_boundary() -> None:
+    """Seconds and milliseconds come from one clock reading: the old `_now` read them separately and
+    could write 28.001 s as '27.001' at a second boundary (a shot 'downloaded' before it was captured)."""
+    import time
+
+    from capture.catalog import _now
+
+    boundary = int(time.time()) + 1                      # stamp continuously through the next whole second
+    stamps = []
+    while time.time() < boundary + 0.05:
+        stamps.append(_now())
+    assert any(stamp[17:19] != stamps[0][17:19] for stamp in stamps)      # the seconds field did change
+    assert all(later >= earlier for earlier, later in zip(stamps, stamps[1:]))
