@@ -20,9 +20,9 @@ from pathlib import Path
 
 
 def make_inputs(folder: Path, count: int, size: str) -> None:
-    from capture.profiles import load_profile
-    from capture.simulated_shots import capture_cr2_bytes, render_scene
-    from processing.scenes import scene_names
+    from mca.capture.profiles import load_profile
+    from mca.capture.simulated_shots import capture_cr2_bytes, render_scene
+    from mca.processing.scenes import scene_names
 
     profile = load_profile("paper-70d")
     scenes = scene_names()
@@ -50,7 +50,7 @@ def run_once(inputs: Path, workers: int) -> tuple[float, float]:
     """Seconds for one `mca process` run and the peak RSS (MiB) of the largest process it started."""
     out = Path(tempfile.mkdtemp(prefix="bench-batch-out-"))
     started = time.perf_counter()
-    done = subprocess.run([sys.executable, "-c", WRAPPER, sys.executable, "-m", "capture.cli", "process", str(inputs),
+    done = subprocess.run([sys.executable, "-c", WRAPPER, sys.executable, "-m", "mca", "process", str(inputs),
                            "--out", str(out), "--workers", str(workers), "--quiet"],
                           check=False, capture_output=True, text=True)
     seconds = time.perf_counter() - started

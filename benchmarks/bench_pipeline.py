@@ -13,10 +13,10 @@ import time
 
 
 def _child(planes, scene: str, scale: float, runs: int, queue) -> None:
-    from capture.profiles import load_profile
-    from processing.peers import sgbm_disparity
-    from processing.pipeline import RGGB_HALF_RES_OFFSETS_PX, default_disparity_range_px, run_pipeline
-    from processing.simulate import SimulationOptics
+    from mca.capture.profiles import load_profile
+    from mca.processing.peers import sgbm_disparity
+    from mca.processing.pipeline import RGGB_HALF_RES_OFFSETS_PX, default_disparity_range_px, run_pipeline
+    from mca.processing.simulate import SimulationOptics
 
     optics = SimulationOptics.from_profile(load_profile("paper-70d"), scale)
     base_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -52,10 +52,10 @@ def main() -> None:
     parser.add_argument("--scale", type=float, default=1.0)
     args = parser.parse_args()
 
-    from capture.profiles import load_profile
-    from processing.evaluate import bayer_planes
-    from processing.scenes import paper_scene
-    from processing.simulate import SensorModel, SimulationOptics, render
+    from mca.capture.profiles import load_profile
+    from mca.processing.evaluate import bayer_planes
+    from mca.processing.scenes import paper_scene
+    from mca.processing.simulate import SensorModel, SimulationOptics, render
 
     optics = SimulationOptics.from_profile(load_profile("paper-70d"), args.scale)
     sensor = SensorModel()

@@ -33,8 +33,8 @@ STAGE_ORDER = ("read", "planes", "disparity", "sketch", "refine", "depth", "all_
 
 def _process_child(cr2: str, out: str, profile_name: str, record: bool, queue) -> None:
     """One `process_file` in a fresh process: its timings, wall and CPU time, peak RSS and output sizes."""
-    from capture.pipeline_app import RESULT_NAME, process_file
-    from capture.profiles import load_profile
+    from mca.capture.pipeline_app import RESULT_NAME, process_file
+    from mca.capture.profiles import load_profile
 
     profile = load_profile(profile_name)
     record_path = Path(out) / "recording.rrd" if record else None
@@ -55,10 +55,10 @@ def _process_child(cr2: str, out: str, profile_name: str, record: bool, queue) -
 
 def _sgbm_child(cr2: str, profile_name: str, runs: int, queue) -> None:
     """StereoSGBM on the very planes `process_file` reads from the CR2, with the pipeline's search range."""
-    from capture.pipeline_app import _optics_for, read_input
-    from capture.profiles import load_profile
-    from processing.peers import sgbm_disparity
-    from processing.pipeline import default_disparity_range_px
+    from mca.capture.pipeline_app import _optics_for, read_input
+    from mca.capture.profiles import load_profile
+    from mca.processing.peers import sgbm_disparity
+    from mca.processing.pipeline import default_disparity_range_px
 
     profile = load_profile(profile_name)
     loaded = read_input(Path(cr2))
@@ -95,8 +95,8 @@ def main() -> None:
     parser.add_argument("--profile", default="paper-70d")
     args = parser.parse_args()
 
-    from capture.profiles import load_profile
-    from capture.simulated_shots import render_scene, write_capture
+    from mca.capture.profiles import load_profile
+    from mca.capture.simulated_shots import render_scene, write_capture
 
     with tempfile.TemporaryDirectory(prefix="bench_process_") as tmp:
         start = time.perf_counter()

@@ -13,10 +13,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from devices.ptp.camera import Camera  # noqa: E402
-from devices.ptp.transport_usb import UsbTransport, find_cameras  # noqa: E402
-from devices.sim_eos70d.responder import SimEos70D, deterministic_frame  # noqa: E402
-from devices.sim_eos70d.usb_backend import USB2_BYTES_PER_S, SimUsbBackend  # noqa: E402
+from mca.devices.ptp.camera import Camera  # noqa: E402
+from mca.devices.ptp.transport_usb import UsbTransport, find_cameras  # noqa: E402
+from mca.devices.sim_eos70d.responder import SimEos70D, deterministic_frame  # noqa: E402
+from mca.devices.sim_eos70d.usb_backend import USB2_BYTES_PER_S, SimUsbBackend  # noqa: E402
 
 RAW_20MP_BYTES = 25 * 1024 * 1024  # a 70D RAW (20.2 MP, 14 bit, lossless JPEG) is about 25 MB
 
@@ -42,7 +42,7 @@ def download_throughput(size_bytes: int = 64 * 1024 * 1024, repeats: int = 5, bl
 
 def shot_to_result_latency(repeats: int = 3) -> tuple[float, float]:
     """Seconds from the release to the verified, catalogued file (and to a processed result when the pipeline exists)."""
-    from capture.tether import TetherSession, camera_factory, make_sim_rig
+    from mca.capture.tether import TetherSession, camera_factory, make_sim_rig
 
     frame = deterministic_frame(1, RAW_20MP_BYTES)
     rig = make_sim_rig(lambda i: (f"IMG_{i:04d}.CR2", frame), pace_bytes_per_s=USB2_BYTES_PER_S)
@@ -63,9 +63,9 @@ def shot_to_processed_latency(repeats: int = 3) -> tuple[float, float]:
 
     Returns (median latency, median seconds of that spent downloading and verifying).
     """
-    from capture.profiles import load_profile
-    from capture.simulated_shots import capture_cr2_bytes, render_scene
-    from capture.tether import TetherSession, camera_factory, make_sim_rig
+    from mca.capture.profiles import load_profile
+    from mca.capture.simulated_shots import capture_cr2_bytes, render_scene
+    from mca.capture.tether import TetherSession, camera_factory, make_sim_rig
 
     profile = load_profile("paper-70d")
     frame = capture_cr2_bytes(render_scene("paper-c", profile, size="full", seed=1), profile)

@@ -25,9 +25,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from capture.profiles import load_profile
-from capture.recording import RerunRecorder
-from processing.optics import MCAOptics
+from mca.capture.profiles import load_profile
+from mca.capture.recording import RerunRecorder
+from mca.processing.optics import MCAOptics
 
 INPUT_W, INPUT_H = 5472, 3648
 PLANE_W, PLANE_H = INPUT_W // 2, INPUT_H // 2
@@ -42,7 +42,7 @@ def _texture(rng: np.random.Generator, shape: tuple[int, int]) -> np.ndarray:
 
 def synthetic_planes(profile, optics: MCAOptics) -> np.ndarray:
     """Half-resolution planes of a background and two boxes, each channel displaced by its region's disparity."""
-    from processing.disparity import shift_channels
+    from mca.processing.disparity import shift_channels
 
     rng = np.random.default_rng(0)
     planes = np.zeros((PLANE_H, PLANE_W, 3), np.float32)
@@ -60,7 +60,7 @@ def synthetic_planes(profile, optics: MCAOptics) -> np.ndarray:
 
 
 def _frame(planes: np.ndarray, pitch_mm: float):
-    from capture.raw import RawFrame, RawMetadata
+    from mca.capture.raw import RawFrame, RawMetadata
 
     meta = RawMetadata(make="Canon", model="Canon EOS 70D", capture_time=datetime(2024, 1, 1, 12, 0, 0),
                        photosite_pitch_mm=pitch_mm)
@@ -105,7 +105,7 @@ def main() -> None:
     planes = synthetic_planes(profile, optics)
     frame = _frame(planes, pitch)
     try:
-        from processing.pipeline import RGGB_HALF_RES_OFFSETS_PX, run_pipeline
+        from mca.processing.pipeline import RGGB_HALF_RES_OFFSETS_PX, run_pipeline
     except ImportError:
         run_pipeline = None
     print(f"recording cost, {INPUT_W}x{INPUT_H} input ({PLANE_W}x{PLANE_H} planes), {os.cpu_count()} CPUs, "
@@ -163,7 +163,7 @@ def main() -> None:
 
 def _recorder_only(folder: Path, frame, profile, optics: MCAOptics, runs: int) -> None:
     """No pipeline here: time the recorder alone on a synthetic 20 MP DepthResult."""
-    from processing.result import DepthResult, MultiPlaneImage, Region
+    from mca.processing.result import DepthResult, MultiPlaneImage, Region
 
     h, w = PLANE_H, PLANE_W
     labels = np.ones((h, w), np.uint16)

@@ -19,9 +19,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Protocol
 
-from capture.pipeline_app import (RECORDING_NAME, STAGES, SUPPORTED_SUFFIXES, FileOutcome, PipelineFunction,
+from mca.capture.pipeline_app import (RECORDING_NAME, STAGES, SUPPORTED_SUFFIXES, FileOutcome, PipelineFunction,
                                   output_dir_for, process_file)
-from processing.camera import CameraProfile
+from mca.processing.camera import CameraProfile
 
 
 class BatchError(RuntimeError):
@@ -546,7 +546,7 @@ def merge_batch_recordings(tasks: list[Task], outcomes: list[FileOutcome], out_p
                    key=lambda p: p.parent.name)
     if not paths:
         return None
-    from capture.recording import merge_recordings
+    from mca.capture.recording import merge_recordings
 
     out_path.parent.mkdir(parents=True, exist_ok=True)
     merge_recordings(paths, out_path)

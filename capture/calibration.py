@@ -22,15 +22,15 @@ from typing import Any
 
 import numpy as np
 
-from capture.catalog import open_database
-from processing.calibration import (
+from mca.capture.catalog import open_database
+from mca.processing.calibration import (
     CalibrationFit,
     LensModel,
     baseline_direction,
     scaled_aperture,
     target_disparity_px,
 )
-from processing.camera import CameraProfile
+from mca.processing.camera import CameraProfile
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS calibration (
@@ -135,7 +135,7 @@ def measure_file(path: Path, profile: CameraProfile, max_disparity_px: float = 2
 
     `max_disparity_px` (pixels of the profile's pitch) bounds the search.
     """
-    from capture.raw import read_raw
+    from mca.capture.raw import read_raw
 
     frame = read_raw(path)
     planes = frame.planes
@@ -162,10 +162,10 @@ def run_sweep(plan: SweepPlan, profile: CameraProfile, out_dir: Path, *, camera_
     `capture.tether.camera_factory`). Each position: move, read the position back, capture,
     download (verified, catalogued), measure, commit. Nothing already committed is shot again.
     """
-    from capture.raw import RawReadError
-    from capture.tether import TetherSession
-    from devices.ptp.transport import TransportError
-    from devices.rail import RailError
+    from mca.capture.raw import RawReadError
+    from mca.capture.tether import TetherSession
+    from mca.devices.ptp.transport import TransportError
+    from mca.devices.rail import RailError
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -268,7 +268,7 @@ class SimBench:
 
     def __init__(self, profile: CameraProfile, plan: SweepPlan, deviation: SimDeviation, *, scale: float = 0.25,
                  seed: int = 0) -> None:
-        from processing.simulate import SimulationOptics
+        from mca.processing.simulate import SimulationOptics
 
         self.profile = profile
         self.plan = plan
@@ -283,7 +283,7 @@ class SimBench:
         self.distances_shot_mm: list[float] = []
 
     def carriage_rail_mm(self) -> float:
-        from devices.rail import grbl_protocol as gp
+        from mca.devices.rail import grbl_protocol as gp
 
         if self.rail_runner is None:
             raise RuntimeError("the simulated camera has no simulated rail to look at (open the rail first)")
@@ -291,8 +291,8 @@ class SimBench:
         return gp.rail_mm(sim.machine_x_mm, gp.GrblAxisSettings.from_settings(sim.settings))
 
     def frame(self, index: int) -> tuple[str, bytes]:
-        from capture.simulated_shots import capture_cr2_bytes, render_scene
-        from processing.scenes import target_scene
+        from mca.capture.simulated_shots import capture_cr2_bytes, render_scene
+        from mca.processing.scenes import target_scene
 
         distance = self.plan.distance_mm(self.carriage_rail_mm())
         self.distances_shot_mm.append(distance)

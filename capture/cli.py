@@ -7,7 +7,7 @@ import pkgutil
 
 import typer
 
-from capture import commands
+from mca.capture import commands
 
 # Nothing leaves the bench: rerun's SDK and viewer send no usage analytics from any `mca` process.
 os.environ.pop("FORCE_RERUN_ANALYTICS", None)

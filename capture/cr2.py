@@ -614,6 +614,6 @@ def write_cr2(
         bits_per_sample=bits_per_sample,
         preview=preview,
     )
-    from capture.outputs import write_bytes_atomic
+    from mca.capture.outputs import write_bytes_atomic
 
     return write_bytes_atomic(path, data)

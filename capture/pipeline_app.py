@@ -19,10 +19,10 @@ from typing import Any, Callable
 
 import numpy as np
 
-from capture import outputs
-from capture.raw import IMAGE_EXTENSIONS, RAW_EXTENSIONS, RawFrame, read_raw
-from processing.camera import CameraProfile
-from processing.result import DepthResult
+from mca.capture import outputs
+from mca.capture.raw import IMAGE_EXTENSIONS, RAW_EXTENSIONS, RawFrame, read_raw
+from mca.processing.camera import CameraProfile
+from mca.processing.result import DepthResult
 
 SUPPORTED_SUFFIXES = frozenset(RAW_EXTENSIONS) | frozenset(IMAGE_EXTENSIONS)   # what `read_raw` reads
 RESULT_NAME = "result.json"
@@ -73,7 +73,7 @@ def input_pixel_pitch_mm(frame: RawFrame, input_width_px: int) -> float | None:
     scale = 2.0 if frame.half_resolution else 1.0
     pitch = frame.pixel_pitch_mm / scale if frame.pixel_pitch_mm else None
     if frame.half_resolution and pitch is not None:
-        from capture.sensors import sensor_for
+        from mca.capture.sensors import sensor_for
 
         spec = sensor_for(frame.metadata.model, frame.metadata.make)
         if spec is not None and spec.width_px >= DOWNSCALED_RAW_RATIO * input_width_px:
@@ -437,13 +437,13 @@ def _optics_for(profile: CameraProfile, loaded: LoadedInput):
     pitch = loaded.pixel_pitch_mm or profile.pixel_pitch_mm
     if pitch is None:
         return None
-    from processing.optics import MCAOptics
+    from mca.processing.optics import MCAOptics
 
     return MCAOptics.from_profile(profile, pixel_pitch_mm=pitch)
 
 
 def _default_pipeline() -> PipelineFunction:
-    from processing.pipeline import run_pipeline
+    from mca.processing.pipeline import run_pipeline
 
     return run_pipeline
 
@@ -535,7 +535,7 @@ def _process(input_path: Path, out_dir: Path, profile: CameraProfile, record_pat
     with contextlib.ExitStack() as stack:
         recorder = live_recorder
         if recorder is None and record_path is not None:
-            from capture.recording import RerunRecorder
+            from mca.capture.recording import RerunRecorder
 
             Path(record_path).parent.mkdir(parents=True, exist_ok=True)
             recorder = RerunRecorder(Path(record_path), application_id="mca", recording_id=recording_id)

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from capture.sensors import SensorSpec, known_models, photosite_pitch_mm, sensor_for
+from mca.capture.sensors import SensorSpec, known_models, photosite_pitch_mm, sensor_for
 
 RAW_EXTENSIONS = {
     ".cr2": "cr2", ".dng": "dng", ".cr3": "cr3", ".crw": "crw", ".nef": "nef", ".arw": "arw",

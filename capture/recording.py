@@ -56,9 +56,9 @@ from typing import TYPE_CHECKING, Any, Mapping
 import numpy as np
 
 if TYPE_CHECKING:
-    from processing.camera import CameraProfile
-    from processing.optics import MCAOptics
-    from processing.result import DepthResult
+    from mca.processing.camera import CameraProfile
+    from mca.processing.optics import MCAOptics
+    from mca.processing.result import DepthResult
 
 # --- rerun's usage analytics: off, before rerun is ever imported ----------------------------------------------------
 #
@@ -211,7 +211,7 @@ def to_srgb8(linear: np.ndarray) -> np.ndarray:
         return linear
     if linear.dtype == np.uint16:
         return (linear >> 8).astype(np.uint8)
-    from capture.outputs import linear_to_srgb8
+    from mca.capture.outputs import linear_to_srgb8
 
     return linear_to_srgb8(linear)
 

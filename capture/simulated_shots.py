@@ -14,9 +14,9 @@ from typing import Any
 
 import numpy as np
 
-from processing.camera import CameraProfile
-from processing.scenes import paper_scene
-from processing.simulate import Scene, SensorModel, SimulationOptics, render
+from mca.processing.camera import CameraProfile
+from mca.processing.scenes import paper_scene
+from mca.processing.simulate import Scene, SensorModel, SimulationOptics, render
 
 # Render sizes: the fraction of the profile's image size (pixel pitch scales to match).
 SIZES: dict[str, float] = {"full": 1.0, "small": 0.25}
@@ -68,7 +68,7 @@ def render_scene(scene: str | Scene, profile: CameraProfile, *, size: str | floa
 
 def capture_cr2_bytes(capture: SimulatedCapture, profile: CameraProfile) -> bytes:
     """The simulated photograph as the bytes of a Canon CR2 (what the simulated EOS hands over PTP)."""
-    from capture.cr2 import Cr2Metadata, cr2_bytes
+    from mca.capture.cr2 import Cr2Metadata, cr2_bytes
 
     lens = profile.lens
     metadata = Cr2Metadata(
@@ -84,7 +84,7 @@ def capture_cr2_bytes(capture: SimulatedCapture, profile: CameraProfile) -> byte
 
 def truth_json(truth: dict[str, Any]) -> str:
     """The truth dictionary as JSON text (numpy scalars converted, floats kept exact, non-finite as null)."""
-    from capture.outputs import json_safe
+    from mca.capture.outputs import json_safe
 
     return json.dumps(json_safe(truth), indent=2) + "\n"
 
@@ -94,7 +94,7 @@ def write_capture(capture: SimulatedCapture, profile: CameraProfile, out_dir: st
     import cv2
     import tifffile
 
-    from capture.outputs import write_bytes_atomic
+    from mca.capture.outputs import write_bytes_atomic
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -17,11 +17,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from capture.catalog import Catalog
-from devices.ptp.camera import MAX_OBJECT_BYTES, Camera, CapturedObject, DeviceBusyError, PtpError
-from devices.ptp.codec import ProtocolError
-from devices.ptp.codes import ObjectFormat
-from devices.ptp.transport import DeviceDisconnected, TransportError
+from mca.capture.catalog import Catalog
+from mca.devices.ptp.camera import MAX_OBJECT_BYTES, Camera, CapturedObject, DeviceBusyError, PtpError
+from mca.devices.ptp.codec import ProtocolError
+from mca.devices.ptp.codes import ObjectFormat
+from mca.devices.ptp.transport import DeviceDisconnected, TransportError
 
 CameraFactory = Callable[[], Camera]
 MAX_FILENAME_CHARS = 100
@@ -37,9 +37,9 @@ def default_sim_frame_source(size: str | float | None = None, profile_name: str 
     (5472 x 3648, the default), "small" or a scale in (0, 1]; the environment variable
     `MCA_SIM_SIZE` sets it for a whole session (the tests use "small").
     """
-    from capture.profiles import load_profile
-    from capture.simulated_shots import capture_cr2_bytes, render_scene
-    from processing.scenes import scene_names
+    from mca.capture.profiles import load_profile
+    from mca.capture.simulated_shots import capture_cr2_bytes, render_scene
+    from mca.processing.scenes import scene_names
 
     chosen_size = size if size is not None else os.environ.get("MCA_SIM_SIZE", "full")
     try:
@@ -105,8 +105,8 @@ class SimRig:
 
 def make_sim_rig(frame_source: Callable[[int], Any] | None = None, *, faults: Any = None,
                  pace_bytes_per_s: float | None = None) -> SimRig:
-    from devices.sim_eos70d.responder import SimEos70D
-    from devices.sim_eos70d.usb_backend import SimUsbBackend
+    from mca.devices.sim_eos70d.responder import SimEos70D
+    from mca.devices.sim_eos70d.usb_backend import SimUsbBackend
 
     sim = SimEos70D(frame_source or default_sim_frame_source())
     return SimRig(sim, SimUsbBackend(sim, faults=faults, pace_bytes_per_s=pace_bytes_per_s))
@@ -114,7 +114,7 @@ def make_sim_rig(frame_source: Callable[[int], Any] | None = None, *, faults: An
 
 def camera_factory(spec: str, *, rig: SimRig | None = None, timeout_s: float = 5.0) -> CameraFactory:
     """A function that opens the camera named by `auto`, `sim`, `usb:BUS:ADDR` or `ptpip:HOST[:PORT]`."""
-    from devices.ptp.transport_usb import UsbTransport, find_cameras, open_usb
+    from mca.devices.ptp.transport_usb import UsbTransport, find_cameras, open_usb
 
     if spec == "sim":
         rig = rig or make_sim_rig()
@@ -128,7 +128,7 @@ def camera_factory(spec: str, *, rig: SimRig | None = None, timeout_s: float = 5
         open_sim.rig = rig  # type: ignore[attr-defined]
         return open_sim
     if spec.startswith("ptpip:"):
-        from devices.ptp.transport_ptpip import PtpIpTransport
+        from mca.devices.ptp.transport_ptpip import PtpIpTransport
 
         host, _, port = spec[len("ptpip:"):].partition(":")
         return lambda: Camera.open(PtpIpTransport(host or "127.0.0.1", int(port or 15740), timeout_s=timeout_s))
@@ -222,7 +222,7 @@ class TetherSession:
         if self.record is None:
             return None
         if self._recorder is None:
-            from capture.recording import RerunRecorder
+            from mca.capture.recording import RerunRecorder
 
             Path(self.record).parent.mkdir(parents=True, exist_ok=True)
             self._recorder = RerunRecorder(Path(self.record), application_id="mca")
@@ -367,8 +367,8 @@ class TetherSession:
 
     def _process(self, shot_id: int, path: Path) -> ShotResult:
         try:
-            from capture import pipeline_app
-            from capture.profiles import DEFAULT_PROFILE, load_profile
+            from mca.capture import pipeline_app
+            from mca.capture.profiles import DEFAULT_PROFILE, load_profile
         except ImportError as exc:
             msg = f"not processed: the processing pipeline is not available ({exc})"
             self.catalog.note(shot_id, msg)

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from devices.rail import grbl_protocol as gp
+from mca.devices.rail import grbl_protocol as gp
 
 # A configured bench rail: homing on, soft limits on, 300 mm of travel.
 DEFAULT_SETTINGS: dict[int, float] = {

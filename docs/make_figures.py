@@ -53,8 +53,8 @@ def main() -> None:
 
     import tifffile
 
-    from capture.pipeline_app import process_file
-    from capture.profiles import load_profile
+    from mca.capture.pipeline_app import process_file
+    from mca.capture.profiles import load_profile
 
     profile = load_profile("bando2008")
     args.out.mkdir(parents=True, exist_ok=True)

@@ -22,8 +22,8 @@ from typing import Sequence
 
 import numpy as np
 
-from processing.camera import FilterAperture
-from processing.optics import thin_lens_disparity_mm, thin_lens_distance_mm
+from mca.processing.camera import FilterAperture
+from mca.processing.optics import thin_lens_disparity_mm, thin_lens_distance_mm
 
 # In half-resolution R and B planes of an RGGB mosaic the red site (0, 0) and the blue site (1, 1) of a
 # 2x2 block are one mosaic pixel apart in x and y: red content appears (+1, +1) mosaic px from blue.

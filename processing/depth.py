@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from processing.optics import MCAOptics
+from mca.processing.optics import MCAOptics
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from processing.camera import CHANNELS, FilterAperture
+from mca.processing.camera import CHANNELS, FilterAperture
 
 
 def channel_shifts(aperture: FilterAperture) -> np.ndarray:

@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from processing.optics import MCAOptics
-from processing.result import DepthResult
+from mca.processing.optics import MCAOptics
+from mca.processing.result import DepthResult
 
 
 @dataclass

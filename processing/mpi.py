@@ -4,9 +4,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from processing.camera import FilterAperture
-from processing.disparity import warp_channels
-from processing.result import MultiPlaneImage
+from mca.processing.camera import FilterAperture
+from mca.processing.disparity import warp_channels
+from mca.processing.result import MultiPlaneImage
 
 
 def all_in_focus(planes: np.ndarray, aperture: FilterAperture, disparity_px: np.ndarray) -> np.ndarray:

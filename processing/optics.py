@@ -19,7 +19,7 @@ from typing import TypeVar
 
 import numpy as np
 
-from processing.camera import CameraProfile
+from mca.processing.camera import CameraProfile
 
 Value = TypeVar("Value", float, np.ndarray)
 

@@ -6,8 +6,8 @@ import math
 import cv2
 import numpy as np
 
-from processing.camera import FilterAperture
-from processing.disparity import DisparityParams, estimate_disparity
+from mca.processing.camera import FilterAperture
+from mca.processing.disparity import DisparityParams, estimate_disparity
 
 
 def _to_uint8(channel: np.ndarray) -> np.ndarray:

@@ -30,13 +30,13 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from processing.camera import FilterAperture
-from processing.depth import depth_map_mm, region_depth
-from processing.disparity import DisparityParams, estimate_disparity, parallel_map
-from processing.mpi import all_in_focus, multi_plane_images
-from processing.optics import MCAOptics
-from processing.result import DepthResult, NullRecorder, Recorder, Region
-from processing.sketch import (BoundaryParams, RefineParams, SketchParams, build_sketch, occlusion_aware_weights,
+from mca.processing.camera import FilterAperture
+from mca.processing.depth import depth_map_mm, region_depth
+from mca.processing.disparity import DisparityParams, estimate_disparity, parallel_map
+from mca.processing.mpi import all_in_focus, multi_plane_images
+from mca.processing.optics import MCAOptics
+from mca.processing.result import DepthResult, NullRecorder, Recorder, Region
+from mca.processing.sketch import (BoundaryParams, RefineParams, SketchParams, build_sketch, occlusion_aware_weights,
                                prepare_refine_level, refine_regions, rescale_plane, snap_boundaries)
 
 # Position of each channel's samples relative to the centre of its 2x2 RGGB block, in half-resolution

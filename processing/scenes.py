@@ -12,8 +12,8 @@ from typing import Callable
 
 import numpy as np
 
-from processing.simulate import Layer, Scene, Shape, Slant
-from processing.textures import Texture
+from mca.processing.simulate import Layer, Scene, Shape, Slant
+from mca.processing.textures import Texture
 
 FRAME_WIDTH = 1.5                    # frame units; the height is 1
 BACKGROUND_DEPTH_MM = 500.0          # the wall, behind the focus plane

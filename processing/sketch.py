@@ -23,8 +23,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from processing.camera import FilterAperture
-from processing.disparity import DisparityMap, parallel_map, warp_channels
+from mca.processing.camera import FilterAperture
+from mca.processing.disparity import DisparityMap, parallel_map, warp_channels
 
 
 @dataclass(frozen=True)
@@ -732,7 +732,7 @@ class RefineParams:
 
 
 def _parabola_min(xs: np.ndarray, ys: np.ndarray) -> float:
-    from processing.disparity import subpixel_minimum
+    from mca.processing.disparity import subpixel_minimum
     i = int(np.argmin(ys))
     if 0 < i < len(xs) - 1:
         step = xs[i + 1] - xs[i]
@@ -751,7 +751,7 @@ class RefineLevel:
 
 def prepare_refine_level(planes: np.ndarray, params: RefineParams = RefineParams()) -> RefineLevel:
     """The first Gaussian-pyramid level of at most `params.max_pixels` and its band-pass (no sketch needed)."""
-    from processing.disparity import band_pass
+    from mca.processing.disparity import band_pass
 
     level = 0
     while planes.shape[0] * planes.shape[1] / 4 ** level > params.max_pixels:
@@ -772,7 +772,7 @@ class _LevelState:
     def __init__(self, band: np.ndarray, level: int, labels: np.ndarray, weights: np.ndarray, ids: list[int],
                  planes_px: dict[int, tuple[float, float, float]], aperture: FilterAperture,
                  params: RefineParams) -> None:
-        from processing.disparity import AlignmentCost
+        from mca.processing.disparity import AlignmentCost
 
         height, width = band.shape[:2]
         factor = 2.0 ** level
@@ -878,7 +878,7 @@ def refine_regions(planes: np.ndarray, aperture: FilterAperture, labels: np.ndar
 
     Returns the refined planes and, per region, the depth of the cost dip (a confidence in [0, 1]).
     """
-    from processing.disparity import subpixel_minimum
+    from mca.processing.disparity import subpixel_minimum
 
     ids = sorted(planes_px)
     if not ids:
@@ -960,7 +960,7 @@ def _refine_per_region(planes: np.ndarray, aperture: FilterAperture, labels: np.
                                                                    dict[int, float]]:
     """`refine_regions` for grids that need no pyramid level (at most `max_pixels`): one crop per region with
     the region's own model extended over the crop (its occluding contours keep their windows whole)."""
-    from processing.disparity import AlignmentCost, band_pass
+    from mca.processing.disparity import AlignmentCost, band_pass
 
     pyramid = {0: (band_pass(planes, *params.band_sigma_px), labels, weights)}
     band = planes
@@ -1048,7 +1048,7 @@ def _refine_per_region(planes: np.ndarray, aperture: FilterAperture, labels: np.
         idx = np.clip(best, 1, len(fine) - 2)
         rows = np.arange(len(best))
         before, at, after = fine_cells[rows, idx - 1], fine_cells[rows, idx], fine_cells[rows, idx + 1]
-        from processing.disparity import subpixel_minimum
+        from mca.processing.disparity import subpixel_minimum
         offsets = fine[idx] + fine_step * subpixel_minimum(before, at, after)
         curvature = np.maximum(before - 2 * at + after, 0.0) / np.maximum(wsum, 1e-9)
         cell_w = np.where(inner, np.sqrt(wsum) * np.sqrt(curvature), 0.0)
@@ -1153,7 +1153,7 @@ def _reassign(planes: np.ndarray, aperture: FilterAperture, ys: np.ndarray, xs: 
     Each pixel's colour is sampled with each candidate's disparity model (`coef[id]` = (a, b, c) in px of
     `planes`: channel c at x + d s_c, so without colour fringes) and compared with the candidate's local model;
     the nearer wins, where the two models differ enough and the current label is one of the two."""
-    from processing.disparity import channel_shifts
+    from mca.processing.disparity import channel_shifts
 
     shifts = channel_shifts(aperture).astype(np.float32)
     fx, fy = xs.astype(np.float32), ys.astype(np.float32)

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from capture.profiles import load_profile
-from processing.pipeline import run_pipeline
+from mca.capture.profiles import load_profile
+from mca.processing.pipeline import run_pipeline
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "bando2008"
 

@@ -13,10 +13,10 @@ import pytest
 import tifffile
 from typer.testing import CliRunner
 
-from capture.batch import LineProgress, discover_inputs, run_batch
-from capture.cli import app
-from capture.pipeline_app import RESULT_NAME
-from capture.profiles import load_profile
+from mca.capture.batch import LineProgress, discover_inputs, run_batch
+from mca.capture.cli import app
+from mca.capture.pipeline_app import RESULT_NAME
+from mca.capture.profiles import load_profile
 from test_process import fake_pipeline, files_under, make_cr2, make_png, make_tiff
 
 

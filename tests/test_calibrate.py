@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from capture import calibration as cal
-from capture.cli import app
-from capture.profiles import load_profile, load_profile_file
-from capture.tether import camera_factory, make_sim_rig
-from devices.rail import open_rail
-from processing.calibration import (
+from mca.capture import calibration as cal
+from mca.capture.cli import app
+from mca.capture.profiles import load_profile, load_profile_file
+from mca.capture.tether import camera_factory, make_sim_rig
+from mca.devices.rail import open_rail
+from mca.processing.calibration import (
     PARAMETERS,
     CalibrationFitError,
     LensModel,
@@ -33,9 +33,9 @@ def _nominal() -> LensModel:
 
 @pytest.mark.parametrize("distance_mm", [905.0, 1003.0, 1140.0])
 def test_target_disparity_matches_the_rendered_truth(distance_mm: float) -> None:
-    from capture.simulated_shots import render_scene
-    from processing.scenes import target_scene
-    from processing.simulate import SimulationOptics
+    from mca.capture.simulated_shots import render_scene
+    from mca.processing.scenes import target_scene
+    from mca.processing.simulate import SimulationOptics
 
     lens = SimulationOptics.from_profile(PROFILE, 0.15).perturbed(baseline_factor=1.03)
     shot = render_scene(target_scene(distance_mm), PROFILE, optics=lens, seed=4)

@@ -4,9 +4,9 @@ from __future__ import annotations
 import pytest
 from typer.testing import CliRunner
 
-from capture.batch import run_batch
-from capture.cli import app
-from capture.profiles import load_profile
+from mca.capture.batch import run_batch
+from mca.capture.cli import app
+from mca.capture.profiles import load_profile
 from test_batch import assert_same_outputs
 from test_process import make_cr2, make_png, make_tiff
 

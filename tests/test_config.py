@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from capture.config import KEYS, Config, ConfigError, load_config, read_config_file, user_config_path
+from mca.capture.config import KEYS, Config, ConfigError, load_config, read_config_file, user_config_path
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -168,7 +168,7 @@ def test_example_config_loads_and_states_the_defaults(tmp_path: Path) -> None:
 def test_mca_config_show_prints_values_and_sources(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from typer.testing import CliRunner
 
-    from capture.cli import app
+    from mca.capture.cli import app
 
     explicit = _write(tmp_path / "bench.toml", 'camera = "sim"\nworkers = 3\n')
     monkeypatch.setenv("MCA_CONFIG", str(explicit))
@@ -191,7 +191,7 @@ def test_mca_config_show_prints_values_and_sources(tmp_path: Path, monkeypatch: 
 def test_mca_config_show_reports_errors_with_exit_2(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from typer.testing import CliRunner
 
-    from capture.cli import app
+    from mca.capture.cli import app
 
     bad = _write(tmp_path / "bad.toml", 'workers = "many"\n')
     monkeypatch.setenv("MCA_CONFIG", str(bad))
@@ -204,7 +204,7 @@ def test_process_and_capture_take_their_defaults_from_the_config_file(tmp_path, 
     """A flag left out falls back to the config file: here a broken profile named there is what gets refused."""
     from typer.testing import CliRunner
 
-    from capture.cli import app
+    from mca.capture.cli import app
 
     config = tmp_path / "config.toml"
     config.write_text('profile = "no-such-profile"\nworkers = 1\n')

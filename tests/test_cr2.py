@@ -13,7 +13,7 @@ import rawpy
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from capture.cr2 import (
+from mca.capture.cr2 import (
     EOS_70D_ACTIVE_HEIGHT_PX,
     EOS_70D_ACTIVE_WIDTH_PX,
     Cr2Metadata,

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from capture.config import load_config
+from mca.capture.config import load_config
 
 REPO = Path(__file__).resolve().parents[1]
 DEPLOY = REPO / "deploy"
@@ -413,6 +413,6 @@ def test_exec_start_is_a_command_line_mca_accepts(name: str, tmp_path: Path) -> 
         args.append(re.sub(r"\$\{(\w+)\}", lambda m: env[m.group(1)], word).replace("%i", "bench")
                     .replace("%h", str(tmp_path)))
     assert words[0].endswith("/venv/bin/mca")
-    result = subprocess.run([sys.executable, "-m", "capture.cli", *args, "--help"], capture_output=True, text=True,
+    result = subprocess.run([sys.executable, "-m", "mca", *args, "--help"], capture_output=True, text=True,
                             timeout=120, cwd=tmp_path)
     assert result.returncode == 0, f"{args}: {result.stdout}{result.stderr}"

@@ -5,9 +5,9 @@ import cv2
 import numpy as np
 import pytest
 
-from capture.profiles import load_profile
-from processing.disparity import DisparityParams, channel_shifts, estimate_disparity, shift_channels
-from processing.sketch import RefineParams, refine_regions
+from mca.capture.profiles import load_profile
+from mca.processing.disparity import DisparityParams, channel_shifts, estimate_disparity, shift_channels
+from mca.processing.sketch import RefineParams, refine_regions
 
 APERTURE = load_profile("paper-70d").aperture
 

@@ -4,13 +4,13 @@ from __future__ import annotations
 import numpy as np
 from typer.testing import CliRunner
 
-from capture.cli import app
-from capture.profiles import load_profile
-from processing.evaluate import ObjectRow, SceneEvaluation, bayer_planes, evaluate_scene, format_table, summarise
-from processing.peers import colour_line_wta, sgbm_disparity
-from processing.pipeline import RGGB_HALF_RES_OFFSETS_PX, align_channel_samples, run_pipeline
-from processing.scenes import paper_scene
-from processing.simulate import SensorModel, SimulationOptics, render
+from mca.capture.cli import app
+from mca.capture.profiles import load_profile
+from mca.processing.evaluate import ObjectRow, SceneEvaluation, bayer_planes, evaluate_scene, format_table, summarise
+from mca.processing.peers import colour_line_wta, sgbm_disparity
+from mca.processing.pipeline import RGGB_HALF_RES_OFFSETS_PX, align_channel_samples, run_pipeline
+from mca.processing.scenes import paper_scene
+from mca.processing.simulate import SensorModel, SimulationOptics, render
 
 
 def test_rows_and_summary():

@@ -20,7 +20,7 @@ def _free_port() -> int:
 @pytest.fixture()
 def served_sim():
     port = _free_port()
-    proc = subprocess.Popen([sys.executable, "-c", "from capture.cli import main; main()", "camera", "serve-sim",
+    proc = subprocess.Popen([sys.executable, "-c", "from mca.capture.cli import main; main()", "camera", "serve-sim",
                              "--ptpip", f"127.0.0.1:{port}"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
         deadline = time.monotonic() + 20
@@ -43,7 +43,7 @@ def served_sim():
 
 
 def _expected_first_shot() -> bytes:
-    from capture.tether import default_sim_frame_source
+    from mca.capture.tether import default_sim_frame_source
 
     produced = default_sim_frame_source()(1)
     return produced[1] if isinstance(produced, tuple) else produced

@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from capture.profiles import load_profile
-from processing import optics
-from processing.optics import MCAOptics
+from mca.capture.profiles import load_profile
+from mca.processing import optics
+from mca.processing.optics import MCAOptics
 
 # The paper's setup (section VI-A) as Table 1 was computed with it.
 D_LS_MM = 52.63

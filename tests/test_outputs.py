@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import tifffile
 
-from capture import outputs
-from capture.pipeline_app import Pinhole, scene_points, upsample_nearest
+from mca.capture import outputs
+from mca.capture.pipeline_app import Pinhole, scene_points, upsample_nearest
 
 
 def _leftovers(folder):

@@ -4,14 +4,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from capture.profiles import load_profile
-from processing.evaluate import bayer_planes
-from processing.mpi import composite
-from processing.pipeline import (PipelineParams, RGGB_HALF_RES_OFFSETS_PX, align_channel_samples,
+from mca.capture.profiles import load_profile
+from mca.processing.evaluate import bayer_planes
+from mca.processing.mpi import composite
+from mca.processing.pipeline import (PipelineParams, RGGB_HALF_RES_OFFSETS_PX, align_channel_samples,
                                  default_disparity_range_px, run_pipeline)
-from processing.sketch import BoundaryParams
-from processing.scenes import paper_scene, target_scene
-from processing.simulate import SensorModel, SimulationOptics, render
+from mca.processing.sketch import BoundaryParams
+from mca.processing.scenes import paper_scene, target_scene
+from mca.processing.simulate import SensorModel, SimulationOptics, render
 
 
 class ListRecorder:
@@ -145,7 +145,7 @@ def test_without_optics_depths_stay_none():
 
 
 def _evaluate_paper_scene(name: str, scale: float, seed: int = 0):
-    from processing.evaluate import evaluate_scene
+    from mca.processing.evaluate import evaluate_scene
 
     optics = SimulationOptics.from_profile(load_profile("paper-70d"), scale)
     sensor = SensorModel()

@@ -11,13 +11,13 @@ import pytest
 import tifffile
 from typer.testing import CliRunner
 
-from capture import outputs
-from capture.batch import run_batch
-from capture.cli import app
-from capture.cr2 import Cr2Metadata, write_cr2
-from capture.pipeline_app import RESULT_NAME, process_file
-from capture.profiles import load_profile
-from processing.result import DepthResult, MultiPlaneImage, Region
+from mca.capture import outputs
+from mca.capture.batch import run_batch
+from mca.capture.cli import app
+from mca.capture.cr2 import Cr2Metadata, write_cr2
+from mca.capture.pipeline_app import RESULT_NAME, process_file
+from mca.capture.profiles import load_profile
+from mca.processing.result import DepthResult, MultiPlaneImage, Region
 
 FULL_SET = {"depth.tiff", "regions.png", "result.json", "all_in_focus.png", "layers/00.png", "layers/01.png",
             "scene.ply", "scene.glb"}
@@ -287,8 +287,8 @@ KILLED_BATCH = """
 import sys, time
 sys.path.insert(0, sys.argv[3])
 from pathlib import Path
-from capture.batch import run_batch
-from capture.profiles import load_profile
+from mca.capture.batch import run_batch
+from mca.capture.profiles import load_profile
 from test_process import fake_pipeline
 
 def slow_pipeline(*args, **kwargs):

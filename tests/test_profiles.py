@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from capture.profiles import builtin_names, load_profile, load_profile_file
-from processing.camera import ProfileError
+from mca.capture.profiles import builtin_names, load_profile, load_profile_file
+from mca.processing.camera import ProfileError
 
 PAPER = """
 name = "test"
@@ -122,7 +122,7 @@ def test_crosstalk_is_read(tmp_path):
 
 
 def _mca(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "capture.cli", *args], capture_output=True, text=True, timeout=120)
+    return subprocess.run([sys.executable, "-m", "mca", *args], capture_output=True, text=True, timeout=120)
 
 
 def test_cli_optics_json_for_the_issue_example():

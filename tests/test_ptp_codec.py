@@ -7,9 +7,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from devices.ptp.codec import ProtocolError, Reader, pack_command, pack_data, pack_string, parse_container, parse_header
-from devices.ptp.codes import ContainerType, EosProp
-from devices.ptp.datasets import (
+from mca.devices.ptp.codec import ProtocolError, Reader, pack_command, pack_data, pack_string, parse_container, parse_header
+from mca.devices.ptp.codes import ContainerType, EosProp
+from mca.devices.ptp.datasets import (
     DevicePropDesc,
     ObjectInfo,
     StorageInfo,
@@ -22,7 +22,7 @@ from devices.ptp.datasets import (
     parse_prop_desc,
     parse_storage_info,
 )
-from devices.ptp.events import (
+from mca.devices.ptp.events import (
     EosAvailListChanged,
     EosCameraStatus,
     EosObjectAdded,
@@ -32,14 +32,14 @@ from devices.ptp.events import (
     pack_image_format,
     parse_eos_events,
 )
-from devices.ptp.transport_ptpip import (
+from mca.devices.ptp.transport_ptpip import (
     parse_init_command_request,
     parse_operation_request,
     parse_operation_response,
     parse_packet_header,
     parse_start_data,
 )
-from devices.sim_eos70d.responder import SimEos70D
+from mca.devices.sim_eos70d.responder import SimEos70D
 
 
 def test_command_container_bytes_match_the_standard_layout() -> None:

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from devices.rail import GrblRail, RailCommandError, open_rail
-from devices.sim_grbl import SimGrbl, SimGrblPty
+from mca.devices.rail import GrblRail, RailCommandError, open_rail
+from mca.devices.sim_grbl import SimGrbl, SimGrblPty
 
 
 @pytest.fixture

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from typer.testing import CliRunner
 
-from capture.cli import app
+from mca.capture.cli import app
 
 runner = CliRunner()
 

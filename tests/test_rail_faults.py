@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from devices.rail import (
+from mca.devices.rail import (
     GrblRail,
     RailAlarm,
     RailDisconnected,
@@ -14,7 +14,7 @@ from devices.rail import (
     RailProtocolError,
     RailTimeout,
 )
-from devices.sim_grbl import SimGrbl, SimGrblPty
+from mca.devices.sim_grbl import SimGrbl, SimGrblPty
 
 
 @pytest.fixture

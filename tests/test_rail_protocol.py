@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from devices.rail import grbl_protocol as gp
+from mca.devices.rail import grbl_protocol as gp
 
 
 def test_status_report_from_grbl_docs_parses_state_position_and_feed() -> None:

@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import pytest
 
-from devices.rail import grbl_protocol as gp
-from devices.sim_grbl import SimGrbl
+from mca.devices.rail import grbl_protocol as gp
+from mca.devices.sim_grbl import SimGrbl
 
 
 class FakeClock:

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 import tifffile
 
-import capture.raw as raw_module
-from capture.cr2 import EOS_70D_ACTIVE_HEIGHT_PX, EOS_70D_ACTIVE_WIDTH_PX, Cr2Metadata, write_cr2
-from capture.raw import RawFrame, RawReadError, UnknownBodyError, read_raw, require_known_body
+import mca.capture.raw as raw_module
+from mca.capture.cr2 import EOS_70D_ACTIVE_HEIGHT_PX, EOS_70D_ACTIVE_WIDTH_PX, Cr2Metadata, write_cr2
+from mca.capture.raw import RawFrame, RawReadError, UnknownBodyError, read_raw, require_known_body
 
 BLACK = 2048
 WHITE = 15000
@@ -323,7 +323,7 @@ def test_corrupt_raw_data_is_reported_not_raised_from_libraw(small_cr2, tmp_path
 
 
 def test_srgb_formula_constants() -> None:
-    from capture.raw import srgb_to_linear
+    from mca.capture.raw import srgb_to_linear
 
     codes = np.array([0.0, 0.04045, 0.5, 1.0])
     np.testing.assert_allclose(srgb_to_linear(codes), [_srgb_decode(c) for c in codes], rtol=1e-6)

@@ -16,12 +16,12 @@ import cv2
 import numpy as np
 import pytest
 
-from capture.recording import (RerunRecorder, child_environment, disable_rerun_analytics, display_size,
+from mca.capture.recording import (RerunRecorder, child_environment, disable_rerun_analytics, display_size,
                                merge_recordings, plane_mesh, quiet_rerun_environment, rerun_analytics_config_path,
                                rerun_analytics_disabled, rerun_executable)
-from capture.profiles import load_profile
-from processing.optics import MCAOptics
-from processing.result import DepthResult, MultiPlaneImage, Region
+from mca.capture.profiles import load_profile
+from mca.processing.optics import MCAOptics
+from mca.processing.result import DepthResult, MultiPlaneImage, Region
 
 RERUN = rerun_executable()
 pytestmark = pytest.mark.skipif(RERUN is None, reason="the rerun CLI of rerun-sdk is not installed")
@@ -87,7 +87,7 @@ def synthetic_result(height: int, width: int, optics: MCAOptics | None, pixel_sc
 
 
 def make_cr2(path: Path, height: int = 96, width: int = 144) -> Path:
-    from capture.cr2 import Cr2Metadata, write_cr2
+    from mca.capture.cr2 import Cr2Metadata, write_cr2
 
     rng = np.random.default_rng(1)
     mosaic = (2048 + rng.random((height, width)) * 10000).astype(np.uint16)
@@ -143,7 +143,7 @@ def one(columns: dict[str, dict[str, list]], entity: str, column: str):
 
 
 def record_shot(path: Path, input_path: Path) -> tuple[DepthResult, object]:
-    from capture.raw import read_raw
+    from mca.capture.raw import read_raw
 
     frame = read_raw(input_path)
     scale = 2.0 if frame.half_resolution else 1.0
@@ -367,7 +367,7 @@ def test_analytics_stay_off(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> 
 
 
 def test_disable_rerun_analytics_writes_rerun_own_opt_out(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import capture.recording as recording
+    import mca.capture.recording as recording
 
     monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config"))
     monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data"))
@@ -391,7 +391,7 @@ def _fake_pipeline(planes, aperture, optics, *, pixel_scale=1.0, recorder=None, 
 
 @pytest.mark.parametrize("maker,name", [(make_cr2, "paper-c.CR2"), (make_png, "scene.png")])
 def test_process_file_records_a_verifiable_recording(tmp_path: Path, maker, name: str) -> None:
-    from capture.pipeline_app import process_file
+    from mca.capture.pipeline_app import process_file
 
     source = maker(tmp_path / name)
     record = tmp_path / "out" / "c.rrd"
@@ -408,7 +408,7 @@ def test_process_file_records_a_verifiable_recording(tmp_path: Path, maker, name
 @pytest.mark.slow
 @pytest.mark.parametrize("maker,name,size", [(make_cr2, "paper-c.CR2", (192, 288)), (make_png, "scene.png", (96, 144))])
 def test_real_pipeline_recording_verifies(tmp_path: Path, maker, name: str, size: tuple[int, int]) -> None:
-    from capture.pipeline_app import process_file
+    from mca.capture.pipeline_app import process_file
 
     source = maker(tmp_path / name, *size)  # both give 96 x 144 planes
     record = tmp_path / "out" / "c.rrd"

@@ -6,8 +6,8 @@ from pathlib import Path
 
 from typer.testing import CliRunner
 
-from capture.cli import app
-from capture.commands.review import format_table, review_rows
+from mca.capture.cli import app
+from mca.capture.commands.review import format_table, review_rows
 
 
 def _result(folder: Path, regions: list[dict], capture_time: str | None = "2024-05-06T07:08:09",
@@ -73,7 +73,7 @@ def test_cli_prints_the_table_and_json(tmp_path: Path) -> None:
 
 
 def test_view_without_display_says_how_to_look(tmp_path: Path, monkeypatch) -> None:
-    from capture.commands.view import has_display, viewer_command
+    from mca.capture.commands.view import has_display, viewer_command
 
     recording = tmp_path / "c.rrd"
     recording.write_bytes(b"rrd")

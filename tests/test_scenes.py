@@ -5,9 +5,9 @@ import json
 
 import pytest
 
-from capture.profiles import load_profile
-from processing.scenes import TABLE1_INTER_OBJECT_DEPTH_MM, paper_scene, scene_names
-from processing.simulate import SimulationOptics, scene_truth, truth_rasters
+from mca.capture.profiles import load_profile
+from mca.processing.scenes import TABLE1_INTER_OBJECT_DEPTH_MM, paper_scene, scene_names
+from mca.processing.simulate import SimulationOptics, scene_truth, truth_rasters
 
 PROFILE = load_profile("paper-70d")
 TINY = SimulationOptics.from_profile(PROFILE, 0.125)
@@ -64,7 +64,7 @@ def test_same_colour_objects_exist() -> None:
 def test_mca_simulate_writes_the_files(tmp_path) -> None:
     from typer.testing import CliRunner
 
-    from capture.cli import app
+    from mca.capture.cli import app
 
     result = CliRunner().invoke(app, ["simulate", "--scene", "paper-g", "--out", str(tmp_path), "--size", "small"])
     assert result.exit_code == 0, result.output

@@ -5,14 +5,14 @@ import io
 
 import pytest
 
-from devices.ptp.camera import Camera, DeviceBusyError
-from devices.ptp.codes import Op
-from devices.ptp.transport_ptpip import PtpIpTransport
-from devices.ptp.transport_usb import UsbTransport, find_cameras
-from devices.sim_eos70d.faults import FaultPlan
-from devices.sim_eos70d.ptpip_server import PtpIpServer
-from devices.sim_eos70d.responder import SimEos70D, deterministic_frame
-from devices.sim_eos70d.usb_backend import SimUsbBackend
+from mca.devices.ptp.camera import Camera, DeviceBusyError
+from mca.devices.ptp.codes import Op
+from mca.devices.ptp.transport_ptpip import PtpIpTransport
+from mca.devices.ptp.transport_usb import UsbTransport, find_cameras
+from mca.devices.sim_eos70d.faults import FaultPlan
+from mca.devices.sim_eos70d.ptpip_server import PtpIpServer
+from mca.devices.sim_eos70d.responder import SimEos70D, deterministic_frame
+from mca.devices.sim_eos70d.usb_backend import SimUsbBackend
 
 
 def _open(backend: SimUsbBackend) -> Camera:

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 from skimage.registration import phase_cross_correlation
 
-from capture.profiles import load_profile
-from processing.optics import MCAOptics
-from processing.scenes import target_scene
-from processing.simulate import Layer, Scene, SensorModel, SimulationOptics, Slant, render
-from processing.scenes import rounded_rect
-from processing.textures import Texture
+from mca.capture.profiles import load_profile
+from mca.processing.optics import MCAOptics
+from mca.processing.scenes import target_scene
+from mca.processing.simulate import Layer, Scene, SensorModel, SimulationOptics, Slant, render
+from mca.processing.scenes import rounded_rect
+from mca.processing.textures import Texture
 
 PROFILE = load_profile("paper-70d")
 SMALL = SimulationOptics.from_profile(PROFILE, 0.25)          # 1368 x 912 mosaic, pitch 4x the 70D's
@@ -153,8 +153,8 @@ def test_truth_is_consistent_with_the_optics() -> None:
 
 
 def test_cr2_round_trip_returns_the_planes(tmp_path) -> None:
-    from capture.raw import read_raw
-    from capture.simulated_shots import render_scene, write_capture
+    from mca.capture.raw import read_raw
+    from mca.capture.simulated_shots import render_scene, write_capture
 
     capture = render_scene("paper-f", PROFILE, size=0.125, seed=1)
     paths = write_capture(capture, PROFILE, tmp_path)

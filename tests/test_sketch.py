@@ -4,9 +4,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from capture.profiles import load_profile
-from processing.disparity import channel_shifts, estimate_disparity
-from processing.sketch import SketchParams, adjacency, build_sketch, weighted_median_by_label
+from mca.capture.profiles import load_profile
+from mca.processing.disparity import channel_shifts, estimate_disparity
+from mca.processing.sketch import SketchParams, adjacency, build_sketch, weighted_median_by_label
 
 APERTURE = load_profile("paper-70d").aperture
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from typer.testing import CliRunner
 
-from capture.cli import app
+from mca.capture.cli import app
 
 
 def test_capture_three_shots_leaves_three_cr2_files_and_a_catalog(tmp_path: Path) -> None:

@@ -6,10 +6,10 @@ from pathlib import Path
 
 import pytest
 
-from capture.tether import TetherSession, camera_factory, make_sim_rig, sanitize_filename
-from devices.ptp.codes import Op
-from devices.sim_eos70d.faults import FaultPlan
-from devices.sim_eos70d.responder import default_frame_source
+from mca.capture.tether import TetherSession, camera_factory, make_sim_rig, sanitize_filename
+from mca.devices.ptp.codes import Op
+from mca.devices.sim_eos70d.faults import FaultPlan
+from mca.devices.sim_eos70d.responder import default_frame_source
 
 
 def _run(tmp_path: Path, faults: FaultPlan, count: int = 3, frame_source=default_frame_source) -> tuple[TetherSession, object]:
@@ -99,7 +99,7 @@ def test_catalog_times_never_run_backwards_across_a_second_boundary() -> None:
     could write 28.001 s as '27.001' at a second boundary (a shot 'downloaded' before it was captured)."""
     import time
 
-    from capture.catalog import _now
+    from mca.capture.catalog import _now
 
     boundary = int(time.time()) + 1                      # stamp continuously through the next whole second
     stamps = []

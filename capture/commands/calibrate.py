@@ -33,12 +33,12 @@ def calibrate(
     """Calibrate an MCA lens on the bench: the fitted profile's depths match the rail's known distances."""
     import cv2
 
-    from capture import calibration as cal
-    from capture.profiles import load_profile
-    from capture.tether import camera_factory, make_sim_rig
-    from devices.rail import RailError, open_rail
-    from processing.calibration import CalibrationFitError, fit_lens, plot_fit
-    from processing.camera import ProfileError, profile_from_mapping
+    from mca.capture import calibration as cal
+    from mca.capture.profiles import load_profile
+    from mca.capture.tether import camera_factory, make_sim_rig
+    from mca.devices.rail import RailError, open_rail
+    from mca.processing.calibration import CalibrationFitError, fit_lens, plot_fit
+    from mca.processing.camera import ProfileError, profile_from_mapping
 
     def fail(message: str, code: int = 1) -> None:
         typer.echo(f"error: {message}", err=True)
@@ -128,7 +128,7 @@ def calibrate(
 
     if record is not None:
         try:
-            from capture.recording import RerunRecorder
+            from mca.capture.recording import RerunRecorder
         except ImportError:
             typer.echo("not recorded: capture.recording is not available", err=True)
             return

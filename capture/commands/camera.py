@@ -11,8 +11,8 @@ CAMERA_OPTION = typer.Option("auto", "--camera", "-c", help="auto, sim, usb:BUS:
 
 
 def _open(spec: str):
-    from capture.tether import camera_factory
-    from devices.ptp.transport import TransportError
+    from mca.capture.tether import camera_factory
+    from mca.devices.ptp.transport import TransportError
 
     try:
         return camera_factory(spec)()
@@ -24,8 +24,8 @@ def _open(spec: str):
 @camera_app.command("list")
 def list_cameras(sim: bool = typer.Option(False, "--sim", help="also list the simulated EOS 70D")) -> None:
     """List PTP cameras on USB (Canon first)."""
-    from devices.ptp.transport import TransportError
-    from devices.ptp.transport_usb import find_cameras
+    from mca.devices.ptp.transport import TransportError
+    from mca.devices.ptp.transport_usb import find_cameras
 
     found = []
     try:
@@ -33,7 +33,7 @@ def list_cameras(sim: bool = typer.Option(False, "--sim", help="also list the si
     except TransportError as exc:
         typer.echo(f"warning: {exc}", err=True)
     if sim:
-        from capture.tether import make_sim_rig
+        from mca.capture.tether import make_sim_rig
 
         found += [dict(port="sim", manufacturer=c.manufacturer, product=c.product, serial_number=c.serial_number)
                   for c in find_cameras(make_sim_rig().backend)]  # type: ignore[misc]
@@ -72,7 +72,7 @@ def config(
     camera: str = CAMERA_OPTION,
 ) -> None:
     """Show or change camera properties by human name."""
-    from devices.ptp.properties import PROPERTIES
+    from mca.devices.ptp.properties import PROPERTIES
 
     if action not in (None, "get", "set") or (action and not name) or (action == "set" and value is None):
         typer.echo("usage: mca camera config [get NAME | set NAME VALUE]", err=True)
@@ -109,9 +109,9 @@ def serve_sim(
     serial: str = typer.Option("SIM70D0000001", help="serial number the simulated camera reports"),
 ) -> None:
     """Serve the simulated EOS 70D over PTP/IP (for gphoto2 and other PTP/IP initiators) until Ctrl-C."""
-    from capture.tether import default_sim_frame_source
-    from devices.sim_eos70d.ptpip_server import PtpIpServer, parse_address
-    from devices.sim_eos70d.responder import SimEos70D
+    from mca.capture.tether import default_sim_frame_source
+    from mca.devices.sim_eos70d.ptpip_server import PtpIpServer, parse_address
+    from mca.devices.sim_eos70d.responder import SimEos70D
 
     host, port = parse_address(ptpip)
     try:

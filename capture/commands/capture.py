@@ -23,9 +23,9 @@ def capture(
     """Capture with a tethered camera; every shot is verified, fsynced and catalogued in OUT/catalog.sqlite."""
     import threading
 
-    from capture.config import ConfigError, fill_from_config
-    from capture.tether import TetherSession, camera_factory
-    from devices.ptp.transport import TransportError
+    from mca.capture.config import ConfigError, fill_from_config
+    from mca.capture.tether import TetherSession, camera_factory
+    from mca.devices.ptp.transport import TransportError
 
     try:
         chosen = fill_from_config(camera=camera, profile=profile)

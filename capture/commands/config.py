@@ -19,7 +19,7 @@ def register(app: typer.Typer) -> None:
     @config_app.command("show")
     def show(as_json: bool = typer.Option(False, "--json", help="Print one JSON object: values and sources.")) -> None:
         """Print the effective config as TOML, each value commented with the file it came from (or "default")."""
-        from capture.config import KEYS, ConfigError, load_config
+        from mca.capture.config import KEYS, ConfigError, load_config
 
         try:
             config = load_config()
@@ -41,7 +41,7 @@ def register(app: typer.Typer) -> None:
     @config_app.command("paths")
     def paths() -> None:
         """List the files searched, lowest precedence first, and whether each exists."""
-        from capture.config import ENV_VAR, config_paths
+        from mca.capture.config import ENV_VAR, config_paths
 
         import os
 

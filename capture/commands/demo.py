@@ -43,13 +43,13 @@ def register(app: typer.Typer) -> None:
         Without a camera on USB this uses the simulated EOS 70D, which photographs the paper's
         Fig. 4 scenes through the MCA lens simulator, so each shot has a known ground truth.
         """
-        from capture.tether import TetherSession, camera_factory, default_sim_frame_source, make_sim_rig
-        from devices.ptp.transport import TransportError
+        from mca.capture.tether import TetherSession, camera_factory, default_sim_frame_source, make_sim_rig
+        from mca.devices.ptp.transport import TransportError
 
         spec = camera
         if camera == "auto":
             try:
-                from devices.ptp.transport_usb import find_cameras
+                from mca.devices.ptp.transport_usb import find_cameras
 
                 spec = "auto" if find_cameras() else "sim"
             except Exception:  # noqa: BLE001 - no libusb, no permission: fall back to the simulated body

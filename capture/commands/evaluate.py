@@ -19,14 +19,14 @@ def register(app: typer.Typer) -> None:
         count and whether the front-to-back order is right, beside the peers run on the same planes."""
         import time
 
-        from capture.profiles import load_profile
-        from processing.camera import ProfileError
-        from processing.evaluate import bayer_planes, evaluate_scene, format_table
-        from processing.peers import colour_line_wta, sgbm_disparity
-        from processing.pipeline import RGGB_HALF_RES_OFFSETS_PX, align_channel_samples, \
+        from mca.capture.profiles import load_profile
+        from mca.processing.camera import ProfileError
+        from mca.processing.evaluate import bayer_planes, evaluate_scene, format_table
+        from mca.processing.peers import colour_line_wta, sgbm_disparity
+        from mca.processing.pipeline import RGGB_HALF_RES_OFFSETS_PX, align_channel_samples, \
             default_disparity_range_px, run_pipeline
-        from processing.scenes import paper_scene, scene_names
-        from processing.simulate import SensorModel, SimulationOptics, render
+        from mca.processing.scenes import paper_scene, scene_names
+        from mca.processing.simulate import SensorModel, SimulationOptics, render
 
         try:
             camera = load_profile(profile)

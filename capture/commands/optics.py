@@ -22,9 +22,9 @@ def register(app: typer.Typer) -> None:
 
         Signs: positive means farther than the focus plane.
         """
-        from capture.profiles import load_profile
-        from processing.camera import ProfileError
-        from processing.optics import MCAOptics
+        from mca.capture.profiles import load_profile
+        from mca.processing.camera import ProfileError
+        from mca.processing.optics import MCAOptics
 
         given = [v is not None for v in (disparity_px, inter_image_depth_mm, distance_mm)]
         if sum(given) != 1:

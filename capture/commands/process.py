@@ -12,7 +12,7 @@ def resolve_profile(name: str | None):
     data (results in disparity pixels only)."""
     import dataclasses
 
-    from capture.profiles import DEFAULT_PROFILE, load_profile
+    from mca.capture.profiles import DEFAULT_PROFILE, load_profile
 
     if name is not None and name.lower() == "none":
         base = load_profile(DEFAULT_PROFILE)
@@ -58,9 +58,9 @@ def register(app: typer.Typer) -> None:
         file failed."""
         import sys
 
-        from capture.batch import BatchError, LineProgress, RichProgress, SilentProgress, print_summary, run_batch
-        from capture.config import ConfigError, fill_from_config
-        from processing.camera import ProfileError
+        from mca.capture.batch import BatchError, LineProgress, RichProgress, SilentProgress, print_summary, run_batch
+        from mca.capture.config import ConfigError, fill_from_config
+        from mca.processing.camera import ProfileError
 
         try:
             chosen = fill_from_config(profile=profile, workers=workers, output_dir=out)
@@ -91,7 +91,7 @@ def register(app: typer.Typer) -> None:
                 typer.echo("error: --serve streams from this process, one file at a time: drop --workers/--cluster, "
                            "or use --record and open the file with `mca view` afterwards", err=True)
                 raise typer.Exit(2)
-            from capture.recording import RerunRecorder
+            from mca.capture.recording import RerunRecorder
 
             live = RerunRecorder(None, serve=True, bind=bind)
             typer.echo(f"rerun viewer: {live.viewer_url}", err=True)

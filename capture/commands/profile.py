@@ -5,8 +5,8 @@ import typer
 
 
 def _describe(name_or_path: str) -> str:
-    from capture.profiles import load_profile
-    from processing.optics import MCAOptics
+    from mca.capture.profiles import load_profile
+    from mca.processing.optics import MCAOptics
 
     p = load_profile(name_or_path)
     ap = p.aperture
@@ -46,7 +46,7 @@ def register(app: typer.Typer) -> None:
     @profile_app.command("list")
     def list_profiles() -> None:
         """List the built-in profiles."""
-        from capture.profiles import builtin_names, load_profile
+        from mca.capture.profiles import builtin_names, load_profile
 
         for name in builtin_names():
             p = load_profile(name)
@@ -56,7 +56,7 @@ def register(app: typer.Typer) -> None:
     @profile_app.command("show")
     def show(profile: str = typer.Argument(..., metavar="NAME|PATH", help="Built-in name or TOML file.")) -> None:
         """Show a profile: its fields and the optics they imply."""
-        from processing.camera import ProfileError
+        from mca.processing.camera import ProfileError
 
         try:
             typer.echo(_describe(profile))

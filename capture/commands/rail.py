@@ -11,7 +11,7 @@ _RAIL_OPTION = typer.Option(
 
 
 def _open(rail_spec: str):  # -> devices.rail.GrblRail; imported lazily to keep `mca --help` fast
-    from devices.rail import open_rail
+    from mca.devices.rail import open_rail
 
     return open_rail(rail_spec, sim_speedup=SIM_SPEEDUP)
 
@@ -32,7 +32,7 @@ def register(app: typer.Typer) -> None:
     @rail_app.command("home")
     def home(rail: str = _RAIL_OPTION) -> None:
         """Run the homing cycle ($H); the rail then stands at its home switch, unlocked."""
-        from devices.rail import RailError
+        from mca.devices.rail import RailError
 
         try:
             with _open(rail) as stage:
@@ -48,7 +48,7 @@ def register(app: typer.Typer) -> None:
         home_first: bool = typer.Option(False, "--home", help="Home first (a controller fresh from reset is locked)."),
     ) -> None:
         """Move to an absolute position, wait until idle, and print the position read back."""
-        from devices.rail import RailError
+        from mca.devices.rail import RailError
 
         try:
             with _open(rail) as stage:
@@ -65,7 +65,7 @@ def register(app: typer.Typer) -> None:
     @rail_app.command("status")
     def status(rail: str = _RAIL_OPTION) -> None:
         """Print the controller state, the position and the travel."""
-        from devices.rail import RailError
+        from mca.devices.rail import RailError
 
         try:
             with _open(rail) as stage:

@@ -18,10 +18,10 @@ def register(app: typer.Typer) -> None:
         import time
         from pathlib import Path
 
-        from capture.profiles import load_profile
-        from capture.simulated_shots import SIZES, render_scene, write_capture
-        from processing.camera import ProfileError
-        from processing.scenes import scene_names
+        from mca.capture.profiles import load_profile
+        from mca.capture.simulated_shots import SIZES, render_scene, write_capture
+        from mca.processing.camera import ProfileError
+        from mca.processing.scenes import scene_names
 
         names = scene_names() if scene == "all" else [scene]
         unknown = [n for n in names if n not in scene_names()]

@@ -59,7 +59,7 @@ def register(app: typer.Typer) -> None:
         """Open recordings in the rerun viewer (native window, or a web viewer on 127.0.0.1 with --web)."""
         import subprocess
 
-        from capture.recording import child_environment, disable_rerun_analytics, rerun_executable
+        from mca.capture.recording import child_environment, disable_rerun_analytics, rerun_executable
 
         missing = [str(p) for p in recordings if not p.is_file()]
         if missing:

@@ -4,7 +4,7 @@ from __future__ import annotations
 import tomllib
 from pathlib import Path
 
-from processing.camera import CameraProfile, ProfileError, profile_from_mapping
+from mca.processing.camera import CameraProfile, ProfileError, profile_from_mapping
 
 BUILTIN_DIR = Path(__file__).resolve().parent
 DEFAULT_PROFILE = "paper-70d"

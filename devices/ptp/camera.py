@@ -7,8 +7,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import BinaryIO
 
-from devices.ptp.codec import ProtocolError, Reader
-from devices.ptp.codes import (
+from mca.devices.ptp.codec import ProtocolError, Reader
+from mca.devices.ptp.codes import (
     ALL_STORAGES,
     CANON_VENDOR_EXTENSION_ID,
     CAPTURE_DESTINATION_RAM,
@@ -19,7 +19,7 @@ from devices.ptp.codes import (
     Resp,
     name_of,
 )
-from devices.ptp.datasets import (
+from mca.devices.ptp.datasets import (
     DeviceInfo,
     DevicePropDesc,
     ObjectInfo,
@@ -30,7 +30,7 @@ from devices.ptp.datasets import (
     parse_prop_desc,
     parse_storage_info,
 )
-from devices.ptp.events import (
+from mca.devices.ptp.events import (
     EosAvailListChanged,
     EosCameraStatus,
     EosEvent,
@@ -41,8 +41,8 @@ from devices.ptp.events import (
     parse_eos_events,
     parse_image_format,
 )
-from devices.ptp.properties import CAPTURE_TARGET_ALIASES, EOS_IMAGE_FORMATS, spec_for
-from devices.ptp.transport import Transport, TransportError
+from mca.devices.ptp.properties import CAPTURE_TARGET_ALIASES, EOS_IMAGE_FORMATS, spec_for
+from mca.devices.ptp.transport import Transport, TransportError
 
 DOWNLOAD_BLOCK_BYTES = 1024 * 1024
 KEEP_ALIVE_INTERVAL_S = 10.0

@@ -8,7 +8,7 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass, field
 
-from devices.ptp.codes import ContainerType
+from mca.devices.ptp.codes import ContainerType
 
 HEADER_BYTES = 12
 MAX_PARAMS = 5

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from devices.ptp.codec import (
+from mca.devices.ptp.codec import (
     MAX_DATASET_BYTES,
     ProtocolError,
     Reader,
@@ -13,7 +13,7 @@ from devices.ptp.codec import (
     u32,
     u64,
 )
-from devices.ptp.codes import DataType
+from mca.devices.ptp.codes import DataType
 
 _SCALAR_FORMATS = {
     DataType.INT8: "b",

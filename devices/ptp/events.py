@@ -8,8 +8,8 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass, field
 
-from devices.ptp.codec import MAX_DATASET_BYTES, ProtocolError, Reader, u32
-from devices.ptp.codes import EosEventCode, EosProp
+from mca.devices.ptp.codec import MAX_DATASET_BYTES, ProtocolError, Reader, u32
+from mca.devices.ptp.codes import EosEventCode, EosProp
 
 #: A poll never yields more records than this (a camera that claims more is misbehaving).
 MAX_EVENT_RECORDS = 65536

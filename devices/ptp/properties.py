@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from devices.ptp.codes import CAPTURE_DESTINATION_CARD, CAPTURE_DESTINATION_RAM, EosProp, StdProp
+from mca.devices.ptp.codes import CAPTURE_DESTINATION_CARD, CAPTURE_DESTINATION_RAM, EosProp, StdProp
 
 
 def _apex_table(base_code: int, base_stop: int, stops: list[str]) -> dict[int, str]:

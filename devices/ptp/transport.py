@@ -5,7 +5,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from devices.ptp.codec import Container
+from mca.devices.ptp.codec import Container
 
 #: Receives each piece of a data-in phase as it arrives (streamed to a file without holding it all).
 DataSink = Callable[[memoryview], None]

@@ -13,9 +13,9 @@ import struct
 import uuid
 from dataclasses import dataclass
 
-from devices.ptp.codec import Container, ProtocolError, Reader, parse_params
-from devices.ptp.codes import ContainerType
-from devices.ptp.transport import DeviceDisconnected, Response, Transport, TransportError, TransportTimeout
+from mca.devices.ptp.codec import Container, ProtocolError, Reader, parse_params
+from mca.devices.ptp.codes import ContainerType
+from mca.devices.ptp.transport import DeviceDisconnected, Response, Transport, TransportError, TransportTimeout
 
 DEFAULT_PORT = 15740
 PROTOCOL_VERSION = 0x00010000

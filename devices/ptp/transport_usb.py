@@ -14,7 +14,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from devices.ptp.codec import (
+from mca.devices.ptp.codec import (
     HEADER_BYTES,
     Container,
     ProtocolError,
@@ -23,8 +23,8 @@ from devices.ptp.codec import (
     parse_container,
     parse_header,
 )
-from devices.ptp.codes import CANON_VENDOR_ID, ContainerType, Resp
-from devices.ptp.transport import DeviceDisconnected, Response, Transport, TransportError, TransportTimeout
+from mca.devices.ptp.codes import CANON_VENDOR_ID, ContainerType, Resp
+from mca.devices.ptp.transport import DeviceDisconnected, Response, Transport, TransportError, TransportTimeout
 
 PTP_CLASS = (6, 1, 1)
 REQ_CANCEL = 0x64

@@ -1,7 +1,7 @@
 """The bench rail: a `Rail` interface, the GRBL-over-serial stage, and `open_rail` choosing a real port or `sim`."""
 from __future__ import annotations
 
-from devices.rail.base import (
+from mca.devices.rail.base import (
     Rail,
     RailAlarm,
     RailCommandError,
@@ -11,7 +11,7 @@ from devices.rail.base import (
     RailStatus,
     RailTimeout,
 )
-from devices.rail.grbl import GrblRail
+from mca.devices.rail.grbl import GrblRail
 
 SIM = "sim"
 
@@ -30,7 +30,7 @@ def open_rail(spec: str, *, sim_speedup: float = 1.0, **options: object) -> Grbl
     """
     if spec != SIM:
         return GrblRail(spec, **options)  # type: ignore[arg-type]
-    from devices.sim_grbl import SimGrblPty
+    from mca.devices.sim_grbl import SimGrblPty
 
     runner = SimGrblPty(speedup=sim_speedup)
     runner.start()

@@ -5,8 +5,8 @@ import collections
 import time
 from typing import Callable
 
-from devices.rail import grbl_protocol as gp
-from devices.rail.base import (
+from mca.devices.rail import grbl_protocol as gp
+from mca.devices.rail.base import (
     Rail,
     RailAlarm,
     RailCommandError,

@@ -12,9 +12,9 @@ import threading
 import time
 import uuid
 
-from devices.ptp.codec import ProtocolError
-from devices.ptp.transport import TransportError
-from devices.ptp.transport_ptpip import (
+from mca.devices.ptp.codec import ProtocolError
+from mca.devices.ptp.transport import TransportError
+from mca.devices.ptp.transport_ptpip import (
     DATA,
     END_DATA,
     INIT_COMMAND_REQUEST,
@@ -37,8 +37,8 @@ from devices.ptp.transport_ptpip import (
     parse_packet_header,
     parse_start_data,
 )
-from devices.sim_eos70d.faults import DOWNLOAD_OPS, FaultPlan
-from devices.sim_eos70d.responder import SimEos70D
+from mca.devices.sim_eos70d.faults import DOWNLOAD_OPS, FaultPlan
+from mca.devices.sim_eos70d.responder import SimEos70D
 
 DATA_CHUNK_BYTES = 1024 * 1024
 MAX_DATA_OUT_BYTES = 16 * 1024 * 1024

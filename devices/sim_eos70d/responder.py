@@ -12,8 +12,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from devices.ptp.codec import Container
-from devices.ptp.codes import (
+from mca.devices.ptp.codec import Container
+from mca.devices.ptp.codes import (
     CANON_VENDOR_EXTENSION_ID,
     CAPTURE_DESTINATION_CARD,
     CAPTURE_DESTINATION_RAM,
@@ -24,9 +24,9 @@ from devices.ptp.codes import (
     Op,
     Resp,
 )
-from devices.ptp.datasets import DeviceInfo, ObjectInfo, StorageInfo, pack_device_info, pack_object_info, pack_storage_info
-from devices.ptp.properties import EOS_SHUTTER
-from devices.ptp.events import (
+from mca.devices.ptp.datasets import DeviceInfo, ObjectInfo, StorageInfo, pack_device_info, pack_object_info, pack_storage_info
+from mca.devices.ptp.properties import EOS_SHUTTER
+from mca.devices.ptp.events import (
     EosAvailListChanged,
     EosCameraStatus,
     EosEvent,
@@ -296,7 +296,7 @@ class SimEos70D:
                 self.disconnect()
                 return ok()
             if code in (Op.GET_STORAGE_IDS,):
-                from devices.ptp.codec import pack_array
+                from mca.devices.ptp.codec import pack_array
 
                 return ok(data=pack_array("I", [CARD_STORAGE_ID]))
             if code == Op.GET_STORAGE_INFO:
@@ -304,7 +304,7 @@ class SimEos70D:
                     return fail(Resp.INVALID_STORAGE_ID)
                 return ok(data=pack_storage_info(self.storage_info()))
             if code in (Op.GET_OBJECT_HANDLES, Op.GET_NUM_OBJECTS):
-                from devices.ptp.codec import pack_array
+                from mca.devices.ptp.codec import pack_array
 
                 storage = p[0] if p else 0xFFFFFFFF
                 fmt = p[1] if len(p) > 1 else 0

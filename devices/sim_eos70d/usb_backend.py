@@ -19,10 +19,10 @@ from typing import Any
 import usb.backend
 import usb.core
 
-from devices.ptp.codec import HEADER_BYTES, ProtocolError, pack_data_header, pack_response, parse_container, parse_header
-from devices.ptp.codes import CANON_VENDOR_ID, EOS_70D_PRODUCT_ID, ContainerType, Resp
-from devices.sim_eos70d.faults import DOWNLOAD_OPS, FaultPlan, corrupt_container
-from devices.sim_eos70d.responder import SimEos70D
+from mca.devices.ptp.codec import HEADER_BYTES, ProtocolError, pack_data_header, pack_response, parse_container, parse_header
+from mca.devices.ptp.codes import CANON_VENDOR_ID, EOS_70D_PRODUCT_ID, ContainerType, Resp
+from mca.devices.sim_eos70d.faults import DOWNLOAD_OPS, FaultPlan, corrupt_container
+from mca.devices.sim_eos70d.responder import SimEos70D
 
 MAX_PACKET_BYTES = 512
 EP_BULK_IN, EP_BULK_OUT, EP_INTR_IN = 0x81, 0x02, 0x83
@@ -348,6 +348,6 @@ class SimUsbBackend(usb.backend.IBackend):
 
 
 def pack_event_raw(ev) -> bytes:
-    from devices.ptp.codec import pack_event
+    from mca.devices.ptp.codec import pack_event
 
     return pack_event(ev.code, ev.transaction_id, ev.params)
