@@ -6,6 +6,7 @@ project with its test extras whenever pyproject.toml changed, and on Debian
 (as root) installs the system tools the tests use as independent
 references: exiftool, gphoto2 and shellcheck.
 """
+
 from __future__ import annotations
 
 import hashlib

@@ -6,6 +6,7 @@ as its own `mca process` subprocess, several times; medians are reported. Assert
 
     .venv/bin/python benchmarks/bench_batch.py [--files 20] [--runs 2] [--size full]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -50,9 +51,26 @@ def run_once(inputs: Path, workers: int) -> tuple[float, float]:
     """Seconds for one `mca process` run and the peak RSS (MiB) of the largest process it started."""
     out = Path(tempfile.mkdtemp(prefix="bench-batch-out-"))
     started = time.perf_counter()
-    done = subprocess.run([sys.executable, "-c", WRAPPER, sys.executable, "-m", "mca", "process", str(inputs),
-                           "--out", str(out), "--workers", str(workers), "--quiet"],
-                          check=False, capture_output=True, text=True)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            WRAPPER,
+            sys.executable,
+            "-m",
+            "mca",
+            "process",
+            str(inputs),
+            "--out",
+            str(out),
+            "--workers",
+            str(workers),
+            "--quiet",
+        ],
+        check=False,
+        capture_output=True,
+        text=True,
+    )
     seconds = time.perf_counter() - started
     shutil.rmtree(out, ignore_errors=True)
     return seconds, int(done.stdout.strip().splitlines()[-1]) / 1024.0
@@ -85,10 +103,14 @@ def main() -> None:
                 print(f"  workers={workers} run {run + 1}: {seconds:6.1f} s")
             median = statistics.median(times)
             rates[workers] = args.files / median * 60.0
-            print(f"workers={workers}: median {median:.1f} s, {rates[workers]:.1f} files/min, "
-                  f"peak memory of one process {max(peaks):.0f} MiB")
-        print(f"scaling efficiency with 2 workers: {rates[2] / (2 * rates[1]):.2f} "
-              f"(speed-up {rates[2] / rates[1]:.2f}x on {os.cpu_count()} cores)")
+            print(
+                f"workers={workers}: median {median:.1f} s, {rates[workers]:.1f} files/min, "
+                f"peak memory of one process {max(peaks):.0f} MiB"
+            )
+        print(
+            f"scaling efficiency with 2 workers: {rates[2] / (2 * rates[1]):.2f} "
+            f"(speed-up {rates[2] / rates[1]:.2f}x on {os.cpu_count()} cores)"
+        )
     finally:
         shutil.rmtree(work, ignore_errors=True)
 

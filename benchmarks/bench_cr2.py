@@ -3,6 +3,7 @@
 Run: .venv/bin/python benchmarks/bench_cr2.py [--runs 5]
 Prints figures only; nothing here asserts a time.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -43,23 +44,29 @@ def main() -> None:
     args = parser.parse_args()
     rng = np.random.default_rng(0)
     mosaics = {
-        "uniform 14-bit noise (worst case)": rng.integers(0, 1 << 14, size=(EOS_70D_ACTIVE_HEIGHT_PX, EOS_70D_ACTIVE_WIDTH_PX), dtype=np.uint16),
+        "uniform 14-bit noise (worst case)": rng.integers(
+            0, 1 << 14, size=(EOS_70D_ACTIVE_HEIGHT_PX, EOS_70D_ACTIVE_WIDTH_PX), dtype=np.uint16
+        ),
         "smooth scene + noise": _scene_mosaic(rng),
     }
-    print(f"CR2 encode, {EOS_70D_ACTIVE_WIDTH_PX}x{EOS_70D_ACTIVE_HEIGHT_PX} mosaic, {os.cpu_count()} CPUs, {args.runs} runs")
+    print(
+        f"CR2 encode, {EOS_70D_ACTIVE_WIDTH_PX}x{EOS_70D_ACTIVE_HEIGHT_PX} mosaic, {os.cpu_count()} CPUs, {args.runs} runs"
+    )
     for name, mosaic in mosaics.items():
         for preview in (False, True):
             size = len(cr2_bytes(mosaic, preview=preview))
             med, times, cpu = _median_s(lambda: cr2_bytes(mosaic, preview=preview), args.runs)
             print(
-                f"  {name:36s} preview={str(preview):5s} median {med:.2f} s "
+                f"  {name:36s} preview={preview!s:5s} median {med:.2f} s "
                 f"(min {min(times):.2f}, max {max(times):.2f}; CPU {cpu:.2f} s), file {size / 1e6:.1f} MB"
             )
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "IMG_0001.CR2"
         path.write_bytes(cr2_bytes(mosaics["smooth scene + noise"]))
         med, times, cpu = _median_s(lambda: read_raw(path), args.runs)
-        print(f"read_raw of that file (LibRaw decode + planes): median {med:.2f} s (min {min(times):.2f}, max {max(times):.2f}; CPU {cpu:.2f} s)")
+        print(
+            f"read_raw of that file (LibRaw decode + planes): median {med:.2f} s (min {min(times):.2f}, max {max(times):.2f}; CPU {cpu:.2f} s)"
+        )
     print(f"load average while running: {os.getloadavg()[0]:.1f} (figures are only comparable on an idle machine)")
 
 

@@ -3,6 +3,7 @@ timings and peak memory, beside one StereoSGBM pass on the same planes. Prints f
 
     .venv/bin/python benchmarks/bench_pipeline.py [--scene paper-e] [--runs 3] [--scale 1.0]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -29,8 +30,9 @@ def _child(planes, scene: str, scale: float, runs: int, queue) -> None:
 
     for _ in range(runs):
         start, cpu_start = time.perf_counter(), cpu_s()
-        result = run_pipeline(planes, optics.aperture, optics.mca, pixel_scale=2.0,
-                              channel_offsets_px=RGGB_HALF_RES_OFFSETS_PX)
+        result = run_pipeline(
+            planes, optics.aperture, optics.mca, pixel_scale=2.0, channel_offsets_px=RGGB_HALF_RES_OFFSETS_PX
+        )
         totals.append(time.perf_counter() - start)
         cpus.append(cpu_s() - cpu_start)
         timings.append(result.timings_s)
@@ -62,22 +64,28 @@ def main() -> None:
     start = time.perf_counter()
     rendering = render(paper_scene(args.scene, optics.focus_distance_mm), optics, sensor, seed=0)
     planes = bayer_planes(rendering.mosaic, sensor.black_level, sensor.white_level)
-    print(f"rendered {args.scene} {optics.width_px}x{optics.height_px} in {time.perf_counter() - start:.1f} s; "
-          f"planes {planes.shape[1]}x{planes.shape[0]}")
+    print(
+        f"rendered {args.scene} {optics.width_px}x{optics.height_px} in {time.perf_counter() - start:.1f} s; "
+        f"planes {planes.shape[1]}x{planes.shape[0]}"
+    )
     queue = mp.get_context("spawn").Queue()
     process = mp.get_context("spawn").Process(target=_child, args=(planes, args.scene, args.scale, args.runs, queue))
     process.start()
     timings, totals, cpus, sgbm, regions, base_kb, peak_kb = queue.get()
     process.join()
-    print(f"pipeline: {regions} regions, median of {args.runs} runs: total {statistics.median(totals):.2f} s "
-          f"(CPU {statistics.median(cpus):.2f} s over all threads; a CPU close to the total on 2 cores means the "
-          f"machine was busy with something else)")
+    print(
+        f"pipeline: {regions} regions, median of {args.runs} runs: total {statistics.median(totals):.2f} s "
+        f"(CPU {statistics.median(cpus):.2f} s over all threads; a CPU close to the total on 2 cores means the "
+        f"machine was busy with something else)"
+    )
     for stage in timings[0]:
         if stage != "total":
             note = "  (part of depth)" if stage == "boundaries" else ""
             print(f"  {stage:<13} {statistics.median(t[stage] for t in timings):6.3f} s{note}")
-    print(f"peak memory of the pipeline process: {peak_kb / 1024:.0f} MiB "
-          f"({(peak_kb - base_kb) / 1024:.0f} MiB above its start with the planes loaded)")
+    print(
+        f"peak memory of the pipeline process: {peak_kb / 1024:.0f} MiB "
+        f"({(peak_kb - base_kb) / 1024:.0f} MiB above its start with the planes loaded)"
+    )
     print(f"StereoSGBM (one pass, widest pair, same planes): median {statistics.median(sgbm):.2f} s")
 
 

@@ -15,6 +15,7 @@ machine, peak memory <= 3 GB. On a shared machine the CPU seconds are the steadi
 
 Prints figures only; nothing here asserts a time.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -45,12 +46,22 @@ def _process_child(cr2: str, out: str, profile_name: str, record: bool, queue) -
         queue.put({"error": outcome.reason})
         return
     document = json.loads((outcome.output_dir / RESULT_NAME).read_text())
-    sizes = {p.relative_to(outcome.output_dir).as_posix(): p.stat().st_size
-             for p in sorted(outcome.output_dir.rglob("*")) if p.is_file()}
+    sizes = {
+        p.relative_to(outcome.output_dir).as_posix(): p.stat().st_size
+        for p in sorted(outcome.output_dir.rglob("*"))
+        if p.is_file()
+    }
     if record_path is not None and record_path.is_file():
         sizes["(recording) " + record_path.name] = record_path.stat().st_size
-    queue.put({"timings": document["timings_s"], "wall": wall, "cpu": cpu, "sizes": sizes,
-               "peak_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024})
+    queue.put(
+        {
+            "timings": document["timings_s"],
+            "wall": wall,
+            "cpu": cpu,
+            "sizes": sizes,
+            "peak_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        }
+    )
 
 
 def _sgbm_child(cr2: str, profile_name: str, runs: int, queue) -> None:
@@ -65,7 +76,7 @@ def _sgbm_child(cr2: str, profile_name: str, runs: int, queue) -> None:
     optics = _optics_for(profile, loaded)
     width, height = loaded.input_size_px
     low, high = default_disparity_range_px(profile.aperture, optics, (height, width))
-    scale = loaded.pixel_scale           # the range is in input pixels, SGBM works on the planes
+    scale = loaded.pixel_scale  # the range is in input pixels, SGBM works on the planes
     seconds = []
     for _ in range(runs):
         start = time.perf_counter()
@@ -102,8 +113,10 @@ def main() -> None:
         start = time.perf_counter()
         capture = render_scene(args.scene, load_profile(args.profile), size="full", seed=0)
         cr2 = str(write_capture(capture, load_profile(args.profile), Path(tmp) / "in")["cr2"])
-        print(f"simulated {args.scene} ({args.profile}) in {time.perf_counter() - start:.1f} s: "
-              f"{Path(cr2).name}, {Path(cr2).stat().st_size / 1e6:.1f} MB")
+        print(
+            f"simulated {args.scene} ({args.profile}) in {time.perf_counter() - start:.1f} s: "
+            f"{Path(cr2).name}, {Path(cr2).stat().st_size / 1e6:.1f} MB"
+        )
 
         runs: dict[bool, list[dict]] = {False: [], True: []}
         cli_walls = []
@@ -114,9 +127,21 @@ def main() -> None:
                     sys.exit(f"process_file failed: {result['error']}")
                 runs[record].append(result)
             start = time.perf_counter()
-            subprocess.run([str(Path(sys.executable).with_name("mca")), "process", cr2, "--out",
-                            str(Path(tmp) / "out-cli"), "--profile", args.profile, "--force", "-q"],
-                           check=True, stdout=subprocess.DEVNULL)
+            subprocess.run(
+                [
+                    str(Path(sys.executable).with_name("mca")),
+                    "process",
+                    cr2,
+                    "--out",
+                    str(Path(tmp) / "out-cli"),
+                    "--profile",
+                    args.profile,
+                    "--force",
+                    "-q",
+                ],
+                check=True,
+                stdout=subprocess.DEVNULL,
+            )
             cli_walls.append(time.perf_counter() - start)
         sgbm = _in_child(_sgbm_child, cr2, args.profile, args.runs)
 
@@ -130,22 +155,32 @@ def main() -> None:
         print(f"  {stage:<14} {plain:8.3f} {recorded:9.3f}")
     plain_wall = _median(r["wall"] for r in runs[False])
     record_wall = _median(r["wall"] for r in runs[True])
-    print(f"  {'total (wall)':<14} {plain_wall:8.3f} {record_wall:9.3f}   runs: "
-          f"{[round(r['wall'], 2) for r in runs[False]]} / {[round(r['wall'], 2) for r in runs[True]]}")
-    print(f"  {'total (CPU)':<14} {_median(r['cpu'] for r in runs[False]):8.3f} "
-          f"{_median(r['cpu'] for r in runs[True]):9.3f}   (2 cores: CPU can exceed wall)")
-    print(f"  {'peak RSS MiB':<14} {_median(r['peak_mib'] for r in runs[False]):8.0f} "
-          f"{_median(r['peak_mib'] for r in runs[True]):9.0f}   (whole process, ru_maxrss)")
-    print(f"mca process (the command, interpreter start and imports included): median {_median(cli_walls):.2f} s "
-          f"wall, runs {[round(w, 2) for w in cli_walls]}")
+    print(
+        f"  {'total (wall)':<14} {plain_wall:8.3f} {record_wall:9.3f}   runs: "
+        f"{[round(r['wall'], 2) for r in runs[False]]} / {[round(r['wall'], 2) for r in runs[True]]}"
+    )
+    print(
+        f"  {'total (CPU)':<14} {_median(r['cpu'] for r in runs[False]):8.3f} "
+        f"{_median(r['cpu'] for r in runs[True]):9.3f}   (2 cores: CPU can exceed wall)"
+    )
+    print(
+        f"  {'peak RSS MiB':<14} {_median(r['peak_mib'] for r in runs[False]):8.0f} "
+        f"{_median(r['peak_mib'] for r in runs[True]):9.0f}   (whole process, ru_maxrss)"
+    )
+    print(
+        f"mca process (the command, interpreter start and imports included): median {_median(cli_walls):.2f} s "
+        f"wall, runs {[round(w, 2) for w in cli_walls]}"
+    )
     print("outputs (bytes):")
     for name, size in runs[True][-1]["sizes"].items():
         print(f"  {name:<26} {size:>12,}")
     sgbm_s = _median(sgbm)
     print(f"StereoSGBM (one pass, widest pair, same planes): median {sgbm_s:.3f} s, runs {[round(s, 3) for s in sgbm]}")
-    print(f"ours / StereoSGBM: {plain_wall / sgbm_s:.2f}x (process_file wall), "
-          f"{_median(r['timings']['pipeline'] for r in runs[False]) / sgbm_s:.2f}x (pipeline alone), "
-          f"{record_wall / sgbm_s:.2f}x (with --record)")
+    print(
+        f"ours / StereoSGBM: {plain_wall / sgbm_s:.2f}x (process_file wall), "
+        f"{_median(r['timings']['pipeline'] for r in runs[False]) / sgbm_s:.2f}x (pipeline alone), "
+        f"{record_wall / sgbm_s:.2f}x (with --record)"
+    )
 
 
 if __name__ == "__main__":

@@ -2,6 +2,7 @@
 
 Run: `.venv/bin/python benchmarks/bench_ptp.py`. Prints medians; asserts nothing about time.
 """
+
 from __future__ import annotations
 
 import io
@@ -13,10 +14,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mca.devices.ptp.camera import Camera  # noqa: E402
-from mca.devices.ptp.transport_usb import UsbTransport, find_cameras  # noqa: E402
-from mca.devices.sim_eos70d.responder import SimEos70D, deterministic_frame  # noqa: E402
-from mca.devices.sim_eos70d.usb_backend import USB2_BYTES_PER_S, SimUsbBackend  # noqa: E402
+from mca.devices.ptp.camera import Camera
+from mca.devices.ptp.transport_usb import UsbTransport, find_cameras
+from mca.devices.sim_eos70d.responder import SimEos70D, deterministic_frame
+from mca.devices.sim_eos70d.usb_backend import USB2_BYTES_PER_S, SimUsbBackend
 
 RAW_20MP_BYTES = 25 * 1024 * 1024  # a 70D RAW (20.2 MP, 14 bit, lossless JPEG) is about 25 MB
 
@@ -78,10 +79,9 @@ def shot_to_processed_latency(repeats: int = 3) -> tuple[float, float]:
         fetch.capture(1)
         transfers.append(time.perf_counter() - t)
         fetch.close()
-        session = TetherSession(camera_factory("sim", rig=rig), Path(out) / "shots", process=True,
-                                profile="paper-70d")
+        session = TetherSession(camera_factory("sim", rig=rig), Path(out) / "shots", process=True, profile="paper-70d")
         session.connect()
-        session.capture(1)                      # warm-up: imports, thread pools
+        session.capture(1)  # warm-up: imports, thread pools
         for _ in range(repeats):
             t = time.perf_counter()
             [result] = session.capture(1)
@@ -97,12 +97,16 @@ def main() -> None:
     rate16 = download_throughput(block_bytes=16 * 1024 * 1024)
     print(f"download throughput, 16 MiB blocks: median {rate16 / 1e6:.0f} MB/s")
     latency_s, effective = shot_to_result_latency()
-    print(f"shot-to-file latency, 25 MB RAW at USB 2.0 pace ({USB2_BYTES_PER_S / 1e6:.0f} MB/s): median {latency_s:.2f} s "
-          f"({effective / 1e6:.1f} MB/s end to end; processing time not included)")
+    print(
+        f"shot-to-file latency, 25 MB RAW at USB 2.0 pace ({USB2_BYTES_PER_S / 1e6:.0f} MB/s): median {latency_s:.2f} s "
+        f"({effective / 1e6:.1f} MB/s end to end; processing time not included)"
+    )
     total_s, transfer_s = shot_to_processed_latency()
-    print(f"shot-to-result latency, simulated 20 MP MCA shot (paper-c CR2) at USB 2.0 pace: median {total_s:.2f} s "
-          f"(release, download and verify {transfer_s:.2f} s; the rest is decoding, the pipeline and writing the "
-          f"results)")
+    print(
+        f"shot-to-result latency, simulated 20 MP MCA shot (paper-c CR2) at USB 2.0 pace: median {total_s:.2f} s "
+        f"(release, download and verify {transfer_s:.2f} s; the rest is decoding, the pipeline and writing the "
+        f"results)"
+    )
 
 
 if __name__ == "__main__":

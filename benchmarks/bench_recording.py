@@ -12,6 +12,7 @@ The recorder's own time (inside its calls) is printed too: on a shared machine i
 Run: .venv/bin/python benchmarks/bench_recording.py [--runs 3]
 Prints figures only; nothing here asserts a time.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -62,10 +63,17 @@ def synthetic_planes(profile, optics: MCAOptics) -> np.ndarray:
 def _frame(planes: np.ndarray, pitch_mm: float):
     from mca.capture.raw import RawFrame, RawMetadata
 
-    meta = RawMetadata(make="Canon", model="Canon EOS 70D", capture_time=datetime(2024, 1, 1, 12, 0, 0),
-                       photosite_pitch_mm=pitch_mm)
-    return RawFrame(planes=planes, pixel_pitch_mm=2 * pitch_mm, source_format="cr2", metadata=meta,
-                    path=Path("synthetic-20MP.CR2"), half_resolution=True)
+    meta = RawMetadata(
+        make="Canon", model="Canon EOS 70D", capture_time=datetime(2024, 1, 1, 12, 0, 0), photosite_pitch_mm=pitch_mm
+    )
+    return RawFrame(
+        planes=planes,
+        pixel_pitch_mm=2 * pitch_mm,
+        source_format="cr2",
+        metadata=meta,
+        path=Path("synthetic-20MP.CR2"),
+        half_resolution=True,
+    )
 
 
 class _Clock:
@@ -108,8 +116,10 @@ def main() -> None:
         from mca.processing.pipeline import RGGB_HALF_RES_OFFSETS_PX, run_pipeline
     except ImportError:
         run_pipeline = None
-    print(f"recording cost, {INPUT_W}x{INPUT_H} input ({PLANE_W}x{PLANE_H} planes), {os.cpu_count()} CPUs, "
-          f"{args.runs} runs each")
+    print(
+        f"recording cost, {INPUT_W}x{INPUT_H} input ({PLANE_W}x{PLANE_H} planes), {os.cpu_count()} CPUs, "
+        f"{args.runs} runs each"
+    )
     with tempfile.TemporaryDirectory() as tmp:
         if run_pipeline is None:
             _recorder_only(Path(tmp), frame, profile, optics, args.runs)
@@ -118,8 +128,7 @@ def main() -> None:
 
         def pipeline_alone() -> None:
             start = time.perf_counter()
-            run_pipeline(planes, profile.aperture, optics, pixel_scale=2.0,
-                         channel_offsets_px=RGGB_HALF_RES_OFFSETS_PX)
+            run_pipeline(planes, profile.aperture, optics, pixel_scale=2.0, channel_offsets_px=RGGB_HALF_RES_OFFSETS_PX)
             without.append(time.perf_counter() - start)
 
         start = time.perf_counter()
@@ -136,9 +145,14 @@ def main() -> None:
             recorder = clock.timed("RerunRecorder()", RerunRecorder, path)
             clock.timed("begin_shot()", recorder.begin_shot, run, "synthetic", datetime(2024, 1, 1), profile)
             clock.timed("log_input()", recorder.log_input, frame)
-            result = run_pipeline(planes, profile.aperture, optics, pixel_scale=2.0,
-                                  channel_offsets_px=RGGB_HALF_RES_OFFSETS_PX,
-                                  recorder=_TimedRecorder(recorder, clock))
+            result = run_pipeline(
+                planes,
+                profile.aperture,
+                optics,
+                pixel_scale=2.0,
+                channel_offsets_px=RGGB_HALF_RES_OFFSETS_PX,
+                recorder=_TimedRecorder(recorder, clock),
+            )
             clock.timed("log_result()", recorder.log_result, result, profile, optics)
             clock.timed("close()", recorder.close)
             with_recording.append(time.perf_counter() - start)
@@ -146,12 +160,16 @@ def main() -> None:
             sizes.append(path.stat().st_size)
             if run % 2 == 1:
                 pipeline_alone()
-            print(f"  run {run}: pipeline {without[-1]:.2f} s, with recording {with_recording[-1]:.2f} s "
-                  f"({len(result.regions)} regions, {len(result.layers)} layers)")
+            print(
+                f"  run {run}: pipeline {without[-1]:.2f} s, with recording {with_recording[-1]:.2f} s "
+                f"({len(result.regions)} regions, {len(result.layers)} layers)"
+            )
         base, recorded = statistics.median(without), statistics.median(with_recording)
         print(f"pipeline alone        median {base:.2f} s (min {min(without):.2f}, max {max(without):.2f})")
-        print(f"pipeline + recording  median {recorded:.2f} s (min {min(with_recording):.2f}, "
-              f"max {max(with_recording):.2f})")
+        print(
+            f"pipeline + recording  median {recorded:.2f} s (min {min(with_recording):.2f}, "
+            f"max {max(with_recording):.2f})"
+        )
         own = statistics.median(sum(p.values()) for p in recording_parts)
         print(f"ratio                 {recorded / base:.2f}  (target <= 1.3; wall clock, noisy on a shared machine)")
         print(f"recorder's own time   median {own:.2f} s: ratio 1 + {own:.2f} / {base:.2f} = {1 + own / base:.3f}")
@@ -174,12 +192,33 @@ def _recorder_only(folder: Path, frame, profile, optics: MCAOptics, runs: int) -
     disp = np.zeros((h, w), np.float32)
     for i, d in disparity.items():
         disp[labels == i] = d
-    regions = [Region(id=i, pixels=int((labels == i).sum()), order=o, occludes=[1] if i > 1 else [],
-                      disparity_px=disparity[i], distance_mm=distance[i]) for i, o in ((1, 2), (2, 1), (3, 0))]
-    layers = [MultiPlaneImage(i, np.dstack([frame.planes, (labels == i).astype(np.float32)]), None, None,
-                              disparity[i]) for i in (1, 2, 3)]
-    result = DepthResult(labels, disp, disp, np.ones((h, w), np.float32), optics.distance_mm(disp).astype(np.float32),
-                         frame.planes, regions, 2, layers, pixel_scale=2.0)
+    regions = [
+        Region(
+            id=i,
+            pixels=int((labels == i).sum()),
+            order=o,
+            occludes=[1] if i > 1 else [],
+            disparity_px=disparity[i],
+            distance_mm=distance[i],
+        )
+        for i, o in ((1, 2), (2, 1), (3, 0))
+    ]
+    layers = [
+        MultiPlaneImage(i, np.dstack([frame.planes, (labels == i).astype(np.float32)]), None, None, disparity[i])
+        for i in (1, 2, 3)
+    ]
+    result = DepthResult(
+        labels,
+        disp,
+        disp,
+        np.ones((h, w), np.float32),
+        optics.distance_mm(disp).astype(np.float32),
+        frame.planes,
+        regions,
+        2,
+        layers,
+        pixel_scale=2.0,
+    )
     times = []
     for run in range(runs):
         start = time.perf_counter()
@@ -189,8 +228,7 @@ def _recorder_only(folder: Path, frame, profile, optics: MCAOptics, runs: int) -
             recorder.log_result(result, profile, optics)
         times.append(time.perf_counter() - start)
     print("processing.pipeline is not available: recording time alone, synthetic 20 MP DepthResult")
-    print(f"recording             median {statistics.median(times):.2f} s (min {min(times):.2f}, "
-          f"max {max(times):.2f})")
+    print(f"recording             median {statistics.median(times):.2f} s (min {min(times):.2f}, max {max(times):.2f})")
 
 
 if __name__ == "__main__":

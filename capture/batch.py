@@ -6,6 +6,7 @@ distributed client), keeps at most the runner's capacity in flight, reports
 progress, and returns every file's `FileOutcome`. A bad file never stops the batch;
 finished output folders (result.json present) are skipped unless forced.
 """
+
 from __future__ import annotations
 
 import concurrent.futures
@@ -15,12 +16,20 @@ import sys
 import time
 import uuid
 from collections import deque
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Protocol
+from typing import Any, Protocol
 
-from mca.capture.pipeline_app import (RECORDING_NAME, STAGES, SUPPORTED_SUFFIXES, FileOutcome, PipelineFunction,
-                                  output_dir_for, process_file)
+from mca.capture.pipeline_app import (
+    RECORDING_NAME,
+    STAGES,
+    SUPPORTED_SUFFIXES,
+    FileOutcome,
+    PipelineFunction,
+    output_dir_for,
+    process_file,
+)
 from mca.processing.camera import CameraProfile
 
 
@@ -35,8 +44,8 @@ class Task:
     input_path: Path
     out_name: str
     record_path: Path | None = None
-    shot_index: int = 0                  # position on the recording's shot timeline
-    recording_id: str | None = None      # shared by the files of one batch: one recording, many shots
+    shot_index: int = 0  # position on the recording's shot timeline
+    recording_id: str | None = None  # shared by the files of one batch: one recording, many shots
 
 
 # --- discovery ------------------------------------------------------------------------------------------------------
@@ -44,9 +53,12 @@ class Task:
 
 def _candidates(source: Path) -> list[Path]:
     if source.is_dir():
-        return sorted(p for p in source.iterdir()
-                      if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in SUPPORTED_SUFFIXES)
-    return [source]   # an explicit file is always tried: a wrong one fails with its reason
+        return sorted(
+            p
+            for p in source.iterdir()
+            if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in SUPPORTED_SUFFIXES
+        )
+    return [source]  # an explicit file is always tried: a wrong one fails with its reason
 
 
 def discover_inputs(sources: Iterable[str | Path]) -> list[Path]:
@@ -99,12 +111,17 @@ class _Job:
     profile: CameraProfile
     force: bool
     pipeline: PipelineFunction | None
-    on_stage: Callable[[Task, str], None] | None = None   # progress display, called in this process
-    recorder: Any = None                                   # a live recorder (inline runner only)
+    on_stage: Callable[[Task, str], None] | None = None  # progress display, called in this process
+    recorder: Any = None  # a live recorder (inline runner only)
 
     def kwargs(self, task: Task) -> dict[str, Any]:
-        kwargs: dict[str, Any] = {"force": self.force, "record_path": task.record_path, "out_name": task.out_name,
-                                  "shot_index": task.shot_index, "recording_id": task.recording_id}
+        kwargs: dict[str, Any] = {
+            "force": self.force,
+            "record_path": task.record_path,
+            "out_name": task.out_name,
+            "shot_index": task.shot_index,
+            "recording_id": task.recording_id,
+        }
         if self.recorder is not None:
             kwargs["recorder"] = self.recorder
         if self.pipeline is not None:
@@ -133,8 +150,14 @@ class InlineRunner:
         task = self.queue.popleft()
         report = self.job.on_stage
         on_stage = None if report is None else (lambda stage: report(task, stage))
-        return [(task, process_file(task.input_path, self.job.out_root, self.job.profile, on_stage=on_stage,
-                                    **self.job.kwargs(task)))]
+        return [
+            (
+                task,
+                process_file(
+                    task.input_path, self.job.out_root, self.job.profile, on_stage=on_stage, **self.job.kwargs(task)
+                ),
+            )
+        ]
 
     def cancel(self) -> list[Task]:
         cancelled = list(self.queue)
@@ -145,7 +168,7 @@ class InlineRunner:
         return None
 
 
-_worker_stage_queue: Any = None    # in a pool worker: where stage announcements go (set by the initializer)
+_worker_stage_queue: Any = None  # in a pool worker: where stage announcements go (set by the initializer)
 
 
 def _init_pool_worker(queue: Any) -> None:
@@ -153,8 +176,9 @@ def _init_pool_worker(queue: Any) -> None:
     _worker_stage_queue = queue
 
 
-def _pool_process_file(input_path: Path, out_root: Path, profile: CameraProfile, key: str,
-                       **kwargs: Any) -> FileOutcome:
+def _pool_process_file(
+    input_path: Path, out_root: Path, profile: CameraProfile, key: str, **kwargs: Any
+) -> FileOutcome:
     """`process_file` in a pool worker, announcing its stages as (key, stage) on the pool's queue."""
     queue = _worker_stage_queue
     on_stage = None if queue is None else (lambda stage: queue.put((key, stage)))
@@ -169,15 +193,21 @@ class PoolRunner:
         self.capacity = workers
         context = multiprocessing.get_context("spawn")
         self.stages = context.Queue() if job.on_stage is not None else None
-        self.executor = concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=context,
-                                                               initializer=_init_pool_worker,
-                                                               initargs=(self.stages,))
+        self.executor = concurrent.futures.ProcessPoolExecutor(
+            max_workers=workers, mp_context=context, initializer=_init_pool_worker, initargs=(self.stages,)
+        )
         self.futures: dict[concurrent.futures.Future, Task] = {}
         self.by_key: dict[str, Task] = {}
 
     def submit(self, task: Task) -> None:
-        future = self.executor.submit(_pool_process_file, task.input_path, self.job.out_root, self.job.profile,
-                                      task.out_name, **self.job.kwargs(task))
+        future = self.executor.submit(
+            _pool_process_file,
+            task.input_path,
+            self.job.out_root,
+            self.job.profile,
+            task.out_name,
+            **self.job.kwargs(task),
+        )
         self.futures[future] = task
         self.by_key[task.out_name] = task
 
@@ -200,8 +230,9 @@ class PoolRunner:
         while True:
             self._drain_stages()
             slice_s = max(0.0, min(0.1, deadline - time.monotonic())) if self.stages is not None else timeout_s
-            done, _ = concurrent.futures.wait(list(self.futures), timeout=slice_s,
-                                              return_when=concurrent.futures.FIRST_COMPLETED)
+            done, _ = concurrent.futures.wait(
+                list(self.futures), timeout=slice_s, return_when=concurrent.futures.FIRST_COMPLETED
+            )
             if done or time.monotonic() >= deadline:
                 break
         self._drain_stages()
@@ -212,10 +243,17 @@ class PoolRunner:
             try:
                 finished.append((task, future.result()))
             except concurrent.futures.process.BrokenProcessPool:
-                finished.append((task, self.job.failed(
-                    task, "a worker process died (crashed or ran out of memory) while this batch ran; "
-                          "rerun to retry, or use fewer --workers")))
-            except BaseException as exc:  # noqa: BLE001 - the worker was interrupted or could not run the task
+                finished.append(
+                    (
+                        task,
+                        self.job.failed(
+                            task,
+                            "a worker process died (crashed or ran out of memory) while this batch ran; "
+                            "rerun to retry, or use fewer --workers",
+                        ),
+                    )
+                )
+            except BaseException as exc:
                 finished.append((task, self.job.failed(task, f"{type(exc).__name__}: {exc}")))
         return finished
 
@@ -244,8 +282,10 @@ class DaskRunner:
         try:
             self.client = Client(address, timeout=f"{connect_timeout_s}s", set_as_default=False)
         except (OSError, TimeoutError) as exc:
-            raise BatchError(f"cannot reach the Dask scheduler at {address} ({exc}); start one with "
-                             f"`dask scheduler` and workers with `dask worker {address}` (see docs/batch.md)") from exc
+            raise BatchError(
+                f"cannot reach the Dask scheduler at {address} ({exc}); start one with "
+                f"`dask scheduler` and workers with `dask worker {address}` (see docs/batch.md)"
+            ) from exc
         from distributed import as_completed
 
         threads = sum(self.client.nthreads().values())
@@ -254,9 +294,15 @@ class DaskRunner:
         self.completed = as_completed(loop=self.client.loop)
 
     def submit(self, task: Task) -> None:
-        future = self.client.submit(process_file, task.input_path, self.job.out_root, self.job.profile,
-                                    pure=False, key=f"mca-process-{task.out_name}-{os.urandom(4).hex()}",
-                                    **self.job.kwargs(task))
+        future = self.client.submit(
+            process_file,
+            task.input_path,
+            self.job.out_root,
+            self.job.profile,
+            pure=False,
+            key=f"mca-process-{task.out_name}-{os.urandom(4).hex()}",
+            **self.job.kwargs(task),
+        )
         self.futures[future] = task
         self.completed.add(future)
 
@@ -276,10 +322,17 @@ class DaskRunner:
             try:
                 finished.append((task, future.result()))
             except (ImportError, ModuleNotFoundError) as exc:
-                finished.append((task, self.job.failed(
-                    task, f"a Dask worker could not import the appliance ({exc}); install mca-appliance on every "
-                          "worker (docs/batch.md)")))
-            except Exception as exc:  # noqa: BLE001 - a lost worker, a cancelled future, a serialisation error
+                finished.append(
+                    (
+                        task,
+                        self.job.failed(
+                            task,
+                            f"a Dask worker could not import the appliance ({exc}); install mca-appliance on every "
+                            "worker (docs/batch.md)",
+                        ),
+                    )
+                )
+            except Exception as exc:
                 finished.append((task, self.job.failed(task, f"on the Dask cluster: {type(exc).__name__}: {exc}")))
         return finished
 
@@ -346,10 +399,15 @@ class LineProgress:
 
     def finished(self, task: Task, outcome: FileOutcome) -> None:
         self.count += 1
-        detail = outcome.reason if outcome.status == "failed" else (
-            f"{outcome.regions} regions" if outcome.regions is not None else "")
-        self.write(f"[{self.count}/{self.total}] {outcome.status:<7} {task.input_path.name} "
-                   f"{outcome.seconds:.1f} s {detail}".rstrip())
+        detail = (
+            outcome.reason
+            if outcome.status == "failed"
+            else (f"{outcome.regions} regions" if outcome.regions is not None else "")
+        )
+        self.write(
+            f"[{self.count}/{self.total}] {outcome.status:<7} {task.input_path.name} "
+            f"{outcome.seconds:.1f} s {detail}".rstrip()
+        )
 
     def close(self) -> None:
         return None
@@ -361,11 +419,17 @@ class RichProgress:
     wants_stages = True
 
     def __init__(self, console: Any = None) -> None:
-        from rich.progress import (BarColumn, MofNCompleteColumn, Progress as RichBar, SpinnerColumn, TextColumn,
-                                   TimeElapsedColumn)
+        from rich.progress import BarColumn, MofNCompleteColumn, SpinnerColumn, TextColumn, TimeElapsedColumn
+        from rich.progress import Progress as RichBar
 
-        self.bar = RichBar(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                           TimeElapsedColumn(), console=console)
+        self.bar = RichBar(
+            SpinnerColumn(),
+            TextColumn("{task.description}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeElapsedColumn(),
+            console=console,
+        )
         self.bar.start()
         self.overall = self.bar.add_task("all files", total=0)
         self.rows: dict[Task, Any] = {}
@@ -412,15 +476,22 @@ class BatchReport:
         return sum(1 for o in self.outcomes if o.status == status)
 
 
-def make_runner(out_root: Path, profile: CameraProfile, *, workers: int = 1, cluster: str | None = None,
-                force: bool = False, pipeline: PipelineFunction | None = None,
-                on_stage: Callable[[Task, str], None] | None = None, recorder: Any = None) -> Runner:
+def make_runner(
+    out_root: Path,
+    profile: CameraProfile,
+    *,
+    workers: int = 1,
+    cluster: str | None = None,
+    force: bool = False,
+    pipeline: PipelineFunction | None = None,
+    on_stage: Callable[[Task, str], None] | None = None,
+    recorder: Any = None,
+) -> Runner:
     """The runner for the options: a Dask client for `cluster`, else a process pool, or inline for one worker.
 
     `on_stage(task, stage)` hears each file's stages (not from a Dask cluster).
     """
-    job = _Job(out_root=out_root, profile=profile, force=force, pipeline=pipeline, on_stage=on_stage,
-               recorder=recorder)
+    job = _Job(out_root=out_root, profile=profile, force=force, pipeline=pipeline, on_stage=on_stage, recorder=recorder)
     if cluster:
         return DaskRunner(job, cluster)
     if workers < 1:
@@ -442,11 +513,23 @@ def _stable(path: Path, seen: dict[Path, tuple[int, int, float]], settle_s: floa
     return stat.st_size > 0 and now - previous[2] >= settle_s
 
 
-def run_batch(sources: list[Path], out_root: Path, profile: CameraProfile, *, workers: int = 1,
-              cluster: str | None = None, force: bool = False, record: Path | None = None, watch: bool = False,
-              watch_timeout_s: float | None = None, poll_interval_s: float = 1.0, settle_s: float = 2.0,
-              progress: Progress | None = None, pipeline: PipelineFunction | None = None,
-              recorder: Any = None) -> BatchReport:
+def run_batch(
+    sources: list[Path],
+    out_root: Path,
+    profile: CameraProfile,
+    *,
+    workers: int = 1,
+    cluster: str | None = None,
+    force: bool = False,
+    record: Path | None = None,
+    watch: bool = False,
+    watch_timeout_s: float | None = None,
+    poll_interval_s: float = 1.0,
+    settle_s: float = 2.0,
+    progress: Progress | None = None,
+    pipeline: PipelineFunction | None = None,
+    recorder: Any = None,
+) -> BatchReport:
     """Process every input under `sources` into `out_root`; with `watch`, keep processing files as they arrive.
 
     Watch mode polls the folders every `poll_interval_s`, takes a file once its size and time stamp
@@ -456,16 +539,25 @@ def run_batch(sources: list[Path], out_root: Path, profile: CameraProfile, *, wo
     serving a web viewer) receives every shot; it needs the files processed here, one at a time.
     """
     if recorder is not None and (workers > 1 or cluster):
-        raise BatchError("a live recorder (--serve) needs the files processed here one at a time: "
-                         "drop --workers/--cluster, or use --record and open the file afterwards")
+        raise BatchError(
+            "a live recorder (--serve) needs the files processed here one at a time: "
+            "drop --workers/--cluster, or use --record and open the file afterwards"
+        )
     out_root = Path(out_root).resolve()
-    sources = [Path(s).resolve() for s in sources]   # absolute: cluster workers see the same shared paths
+    sources = [Path(s).resolve() for s in sources]  # absolute: cluster workers see the same shared paths
     out_root.mkdir(parents=True, exist_ok=True)
     progress = progress or SilentProgress()
     report = BatchReport()
-    runner = make_runner(out_root, profile, workers=workers, cluster=cluster, force=force, pipeline=pipeline,
-                         on_stage=progress.stage if getattr(progress, "wants_stages", False) else None,
-                         recorder=recorder)
+    runner = make_runner(
+        out_root,
+        profile,
+        workers=workers,
+        cluster=cluster,
+        force=force,
+        pipeline=pipeline,
+        on_stage=progress.stage if getattr(progress, "wants_stages", False) else None,
+        recorder=recorder,
+    )
     recording_id = str(uuid.uuid4()) if record is not None else None
     names: dict[str, Path] = {}
     known: set[Path] = set()
@@ -482,12 +574,19 @@ def run_batch(sources: list[Path], out_root: Path, profile: CameraProfile, *, wo
             if path in known:
                 continue
             if watch and not _stable(path, sizes, settle_s):
-                last_activity = time.monotonic()      # still arriving: keep waiting for it
+                last_activity = time.monotonic()  # still arriving: keep waiting for it
                 continue
             known.add(path)
             name = assign_name(path, names)
-            queue.append(Task(path, name, out_root / name / RECORDING_NAME if record else None,
-                              shot_index=len(known) - 1, recording_id=recording_id))
+            queue.append(
+                Task(
+                    path,
+                    name,
+                    out_root / name / RECORDING_NAME if record else None,
+                    shot_index=len(known) - 1,
+                    recording_id=recording_id,
+                )
+            )
             new = True
         if new:
             last_activity = time.monotonic()
@@ -496,8 +595,11 @@ def run_batch(sources: list[Path], out_root: Path, profile: CameraProfile, *, wo
     try:
         discover()
         if not watch and not known:
-            raise BatchError("no input files found in " + ", ".join(str(s) for s in sources)
-                             + f"; give files or folders holding {', '.join(sorted(SUPPORTED_SUFFIXES))}")
+            raise BatchError(
+                "no input files found in "
+                + ", ".join(str(s) for s in sources)
+                + f"; give files or folders holding {', '.join(sorted(SUPPORTED_SUFFIXES))}"
+            )
         while True:
             while queue and in_flight < runner.capacity:
                 task = queue.popleft()
@@ -511,9 +613,7 @@ def run_batch(sources: list[Path], out_root: Path, profile: CameraProfile, *, wo
                     finished_tasks.append(task)
                     progress.finished(task, outcome)
                     last_activity = time.monotonic()
-            elif not watch:
-                break
-            elif watch_timeout_s is not None and time.monotonic() - last_activity > watch_timeout_s:
+            elif not watch or (watch_timeout_s is not None and time.monotonic() - last_activity > watch_timeout_s):
                 break
             else:
                 time.sleep(poll_interval_s)
@@ -522,8 +622,11 @@ def run_batch(sources: list[Path], out_root: Path, profile: CameraProfile, *, wo
     except KeyboardInterrupt:
         report.interrupted = True
         for task in runner.cancel() + list(queue):
-            report.outcomes.append(runner_failed(out_root, task, "interrupted (Ctrl-C) before it finished; "
-                                                                 "rerun the same command to finish it"))
+            report.outcomes.append(
+                runner_failed(
+                    out_root, task, "interrupted (Ctrl-C) before it finished; rerun the same command to finish it"
+                )
+            )
         queue.clear()
     finally:
         progress.close()
@@ -535,15 +638,21 @@ def run_batch(sources: list[Path], out_root: Path, profile: CameraProfile, *, wo
 
 
 def runner_failed(out_root: Path, task: Task, reason: str) -> FileOutcome:
-    return FileOutcome(task.input_path, "failed", output_dir_for(task.input_path, out_root, task.out_name),
-                       reason=f"{task.input_path}: {reason}")
+    return FileOutcome(
+        task.input_path,
+        "failed",
+        output_dir_for(task.input_path, out_root, task.out_name),
+        reason=f"{task.input_path}: {reason}",
+    )
 
 
 def merge_batch_recordings(tasks: list[Task], outcomes: list[FileOutcome], out_path: Path) -> Path | None:
     """Merge the per-file recordings of the finished (done or skipped) files, in input order, into `out_path`."""
     ok = {o.input_path for o in outcomes if o.status != "failed"}
-    paths = sorted((t.record_path for t in tasks if t.input_path in ok and t.record_path and t.record_path.is_file()),
-                   key=lambda p: p.parent.name)
+    paths = sorted(
+        (t.record_path for t in tasks if t.input_path in ok and t.record_path and t.record_path.is_file()),
+        key=lambda p: p.parent.name,
+    )
     if not paths:
         return None
     from mca.capture.recording import merge_recordings
@@ -568,12 +677,19 @@ def print_summary(report: BatchReport, console: Any = None) -> None:
         table.add_column(column, overflow="fold")
     style = {"done": "green", "skipped": "cyan", "failed": "red"}
     for outcome in sorted(report.outcomes, key=lambda o: str(o.input_path)):
-        table.add_row(outcome.input_path.name, f"[{style[outcome.status]}]{outcome.status}[/]",
-                      f"{outcome.seconds:.1f}", "" if outcome.regions is None else str(outcome.regions),
-                      str(outcome.output_dir))
+        table.add_row(
+            outcome.input_path.name,
+            f"[{style[outcome.status]}]{outcome.status}[/]",
+            f"{outcome.seconds:.1f}",
+            "" if outcome.regions is None else str(outcome.regions),
+            str(outcome.output_dir),
+        )
     console.print(table)
-    console.print(f"{report.count('done')} done, {report.count('skipped')} skipped, {report.count('failed')} failed"
-                  + (" (stopped by Ctrl-C)" if report.interrupted else ""), highlight=False)
+    console.print(
+        f"{report.count('done')} done, {report.count('skipped')} skipped, {report.count('failed')} failed"
+        + (" (stopped by Ctrl-C)" if report.interrupted else ""),
+        highlight=False,
+    )
     if report.recording is not None:
         console.print(f"recording: {report.recording}", highlight=False)
     if report.failed:
@@ -582,5 +698,16 @@ def print_summary(report: BatchReport, console: Any = None) -> None:
             print(f"  {outcome.reason}", file=sys.stderr)
 
 
-__all__ = ["BatchError", "BatchReport", "LineProgress", "RichProgress", "SilentProgress", "Task", "assign_name",
-           "discover_inputs", "make_runner", "print_summary", "run_batch"]
+__all__ = [
+    "BatchError",
+    "BatchReport",
+    "LineProgress",
+    "RichProgress",
+    "SilentProgress",
+    "Task",
+    "assign_name",
+    "discover_inputs",
+    "make_runner",
+    "print_summary",
+    "run_batch",
+]

@@ -10,6 +10,7 @@ nominal focus plane (s = -100 is 100 mm nearer than focus).
 Every measured position is a row of the `calibration` table in `DIR/catalog.sqlite`
 (beside the tether `shots` table); a rerun after a fault skips positions already there.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -60,8 +61,8 @@ class SweepPlan:
     from_mm: float
     to_mm: float
     step_mm: float
-    target_distance_at_zero_mm: float   # object distance (mm from the lens) with the rail at 0 mm
-    rail_start_mm: float = 0.0          # rail position of the first sweep position
+    target_distance_at_zero_mm: float  # object distance (mm from the lens) with the rail at 0 mm
+    rail_start_mm: float = 0.0  # rail position of the first sweep position
 
     def __post_init__(self) -> None:
         if not self.step_mm > 0:
@@ -109,9 +110,11 @@ class CalibrationStore:
         self.db.close()
 
     def points(self) -> list[CalibrationPoint]:
-        rows = self.db.execute("SELECT position_mm, rail_mm, distance_mm, shot_id, file_name, mosaic_height_px,"
-                               " disparity_raw_px, disparity_px, across_px, correlation FROM calibration"
-                               " ORDER BY position_mm").fetchall()
+        rows = self.db.execute(
+            "SELECT position_mm, rail_mm, distance_mm, shot_id, file_name, mosaic_height_px,"
+            " disparity_raw_px, disparity_px, across_px, correlation FROM calibration"
+            " ORDER BY position_mm"
+        ).fetchall()
         return [CalibrationPoint(*row) for row in rows]
 
     def add(self, point: CalibrationPoint) -> None:
@@ -123,14 +126,21 @@ class CalibrationStore:
 def nominal_lens(profile: CameraProfile, disparity_offset_px: float = 0.0) -> LensModel:
     """The profile's lens as a `LensModel` (disparities in pixels of the profile's pitch)."""
     if profile.lens is None or profile.pixel_pitch_mm is None or not profile.height_px:
-        raise ValueError(f"profile '{profile.name}' needs [lens], camera.pixel_pitch_mm and camera.height_px "
-                         "to be calibrated")
-    return LensModel(profile.lens.focal_length_mm, profile.lens.sensor_distance_mm, profile.aperture.baseline_mm,
-                     profile.pixel_pitch_mm, disparity_offset_px)
+        raise ValueError(
+            f"profile '{profile.name}' needs [lens], camera.pixel_pitch_mm and camera.height_px to be calibrated"
+        )
+    return LensModel(
+        profile.lens.focal_length_mm,
+        profile.lens.sensor_distance_mm,
+        profile.aperture.baseline_mm,
+        profile.pixel_pitch_mm,
+        disparity_offset_px,
+    )
 
 
-def measure_file(path: Path, profile: CameraProfile, max_disparity_px: float = 24.0
-                 ) -> tuple[float, float, float, float, int]:
+def measure_file(
+    path: Path, profile: CameraProfile, max_disparity_px: float = 24.0
+) -> tuple[float, float, float, float, int]:
     """(disparity in the file's mosaic px, in profile px, across px, correlation, mosaic height) of a shot.
 
     `max_disparity_px` (pixels of the profile's pitch) bounds the search.
@@ -140,22 +150,33 @@ def measure_file(path: Path, profile: CameraProfile, max_disparity_px: float = 2
     frame = read_raw(path)
     planes = frame.planes
     height = int(planes.shape[0] * 2) if frame.half_resolution else int(planes.shape[0])
-    to_profile = (profile.height_px or height) / height   # a reduced image has a proportionally larger pitch
-    est = target_disparity_px(planes[..., 0], planes[..., 2], baseline_direction(profile.aperture),
-                              max_disparity_px=max_disparity_px / to_profile + 4.0)
+    to_profile = (profile.height_px or height) / height  # a reduced image has a proportionally larger pitch
+    est = target_disparity_px(
+        planes[..., 0],
+        planes[..., 2],
+        baseline_direction(profile.aperture),
+        max_disparity_px=max_disparity_px / to_profile + 4.0,
+    )
     return est.disparity_px, est.disparity_px * to_profile, est.across_px, est.correlation, height
 
 
 @dataclass
 class SweepOutcome:
     points: list[CalibrationPoint]
-    shot_positions_mm: list[float]   # positions shot in this run (resumed ones excluded)
+    shot_positions_mm: list[float]  # positions shot in this run (resumed ones excluded)
 
 
-def run_sweep(plan: SweepPlan, profile: CameraProfile, out_dir: Path, *, camera_factory: Callable[[], Any],
-              rail: Any, log: Callable[[str], None] = lambda m: None,
-              on_point: Callable[[CalibrationPoint], None] | None = None,
-              feed_mm_per_min: float | None = None) -> SweepOutcome:
+def run_sweep(
+    plan: SweepPlan,
+    profile: CameraProfile,
+    out_dir: Path,
+    *,
+    camera_factory: Callable[[], Any],
+    rail: Any,
+    log: Callable[[str], None] = lambda m: None,
+    on_point: Callable[[CalibrationPoint], None] | None = None,
+    feed_mm_per_min: float | None = None,
+) -> SweepOutcome:
     """Shoot every position of `plan` not yet in `out_dir/catalog.sqlite`; raise `CalibrationError` on a fault.
 
     `rail` is an open `devices.rail.Rail` (homed here); `camera_factory` opens the camera (see
@@ -178,13 +199,14 @@ def run_sweep(plan: SweepPlan, profile: CameraProfile, out_dir: Path, *, camera_
             raise CalibrationError(
                 f"{out_dir}: position {point.position_mm:+.1f} mm was recorded at {point.distance_mm:.1f} mm from "
                 f"the lens, this sweep puts it at {expected:.1f} mm; use a new --dir or the earlier "
-                "--target-distance-at-zero / --from")
+                "--target-distance-at-zero / --from"
+            )
     todo = [s for s in plan.positions_mm if round(s, 6) not in done]
     if done:
         log(f"resuming: {len(done)} position(s) already measured in {store.path}, {len(todo)} to go")
     nominal = nominal_lens(profile)
     span = [nominal.disparity_px(plan.distance_mm(plan.rail_mm(s))) for s in plan.positions_mm]
-    max_disparity_px = 1.5 * max(abs(float(v)) for v in span) + 8.0   # profile px
+    max_disparity_px = 1.5 * max(abs(float(v)) for v in span) + 8.0  # profile px
     shot: list[float] = []
     session = TetherSession(camera_factory, out_dir, log=log) if todo else None
     position = math.nan
@@ -201,24 +223,38 @@ def run_sweep(plan: SweepPlan, profile: CameraProfile, out_dir: Path, *, camera_
             if result.path is None:
                 raise TransportError(f"shot {result.shot_id} was not downloaded: {result.message}")
             raw_px, disparity, across, correlation, height = measure_file(result.path, profile, max_disparity_px)
-            point = CalibrationPoint(position, status.position_mm, distance, result.shot_id, result.path.name,
-                                     height, raw_px, disparity, across, correlation)
+            point = CalibrationPoint(
+                position,
+                status.position_mm,
+                distance,
+                result.shot_id,
+                result.path.name,
+                height,
+                raw_px,
+                disparity,
+                across,
+                correlation,
+            )
             store.add(point)
             done[round(position, 6)] = point
-            log(f"{position:+8.1f} mm  rail {status.position_mm:7.2f} mm  u {distance:8.2f} mm  "
-                f"disparity {disparity:+8.3f} px  ({result.path.name})")
+            log(
+                f"{position:+8.1f} mm  rail {status.position_mm:7.2f} mm  u {distance:8.2f} mm  "
+                f"disparity {disparity:+8.3f} px  ({result.path.name})"
+            )
             if on_point is not None:
                 on_point(point)
     except RailError as exc:
         raise CalibrationError(
             f"calibration sweep stopped at {position:+.1f} mm: {exc} -- {len(done)} of {len(plan.positions_mm)} "
             f"positions are recorded in {store.path}; fix the rail and rerun the same command to shoot only the "
-            "rest") from exc
+            "rest"
+        ) from exc
     except (TransportError, RawReadError, OSError, ValueError) as exc:
         raise CalibrationError(
             f"calibration sweep stopped at {position:+.1f} mm (camera or file): {exc}. {len(done)} of "
             f"{len(plan.positions_mm)} positions are recorded in {store.path}; rerun the same command to "
-            "shoot only the rest") from exc
+            "shoot only the rest"
+        ) from exc
     finally:
         if session is not None:
             session.close()
@@ -234,12 +270,12 @@ def run_sweep(plan: SweepPlan, profile: CameraProfile, out_dir: Path, *, camera_
 class SimDeviation:
     """How the simulated lens differs from its profile (the defaults of `--sim-deviation`)."""
 
-    baseline_factor: float = 1.03        # effective d_a = 1.03 x nominal
-    focus_factor: float = 1.02           # d_ls chosen so that the focus distance is 1.02 x nominal
-    disparity_offset_px: float = 0.3     # red-blue misregistration, pixels of the profile's pitch
+    baseline_factor: float = 1.03  # effective d_a = 1.03 x nominal
+    focus_factor: float = 1.02  # d_ls chosen so that the focus distance is 1.02 x nominal
+    disparity_offset_px: float = 0.3  # red-blue misregistration, pixels of the profile's pitch
 
     @classmethod
-    def parse(cls, text: str) -> "SimDeviation":
+    def parse(cls, text: str) -> SimDeviation:
         """`BASELINE,FOCUS,OFFSET`, e.g. `1.03,1.02,0.3`."""
         try:
             values = [float(v) for v in text.split(",")]
@@ -253,9 +289,12 @@ class SimDeviation:
         nominal = nominal_lens(profile)
         f = nominal.focal_length_mm
         focus = nominal.focus_distance_mm * self.focus_factor
-        return dataclasses.replace(nominal, sensor_distance_mm=f * focus / (focus - f),
-                                   filter_centre_distance_mm=nominal.filter_centre_distance_mm * self.baseline_factor,
-                                   disparity_offset_px=self.disparity_offset_px)
+        return dataclasses.replace(
+            nominal,
+            sensor_distance_mm=f * focus / (focus - f),
+            filter_centre_distance_mm=nominal.filter_centre_distance_mm * self.baseline_factor,
+            disparity_offset_px=self.disparity_offset_px,
+        )
 
 
 class SimBench:
@@ -266,8 +305,9 @@ class SimBench:
     through the deviating lens at `scale` of the profile's size, and returns the CR2 bytes.
     """
 
-    def __init__(self, profile: CameraProfile, plan: SweepPlan, deviation: SimDeviation, *, scale: float = 0.25,
-                 seed: int = 0) -> None:
+    def __init__(
+        self, profile: CameraProfile, plan: SweepPlan, deviation: SimDeviation, *, scale: float = 0.25, seed: int = 0
+    ) -> None:
         from mca.processing.simulate import SimulationOptics
 
         self.profile = profile
@@ -277,7 +317,8 @@ class SimBench:
         nominal = SimulationOptics.from_profile(profile, scale)
         self.optics = nominal.perturbed(
             baseline_factor=deviation.baseline_factor,
-            sensor_distance_factor=self.truth.sensor_distance_mm / nominal.sensor_distance_mm)
+            sensor_distance_factor=self.truth.sensor_distance_mm / nominal.sensor_distance_mm,
+        )
         self.seed = seed
         self.rail_runner: Any = None
         self.distances_shot_mm: list[float] = []
@@ -310,7 +351,7 @@ def misregister_red(mosaic: np.ndarray, shift_px: float, direction: tuple[float,
     red = mosaic[0::2, 0::2].astype(np.float64)
     ky = np.fft.fftfreq(red.shape[0])[:, None]
     kx = np.fft.fftfreq(red.shape[1])[None, :]
-    dx, dy = direction[0] * shift_px / 2.0, direction[1] * shift_px / 2.0   # plane px
+    dx, dy = direction[0] * shift_px / 2.0, direction[1] * shift_px / 2.0  # plane px
     moved = np.real(np.fft.ifft2(np.fft.fft2(red) * np.exp(-2j * np.pi * (kx * dx + ky * dy))))
     out[0::2, 0::2] = np.clip(np.round(moved), 0, np.iinfo(mosaic.dtype).max).astype(mosaic.dtype)
     return out
@@ -334,62 +375,79 @@ def _toml_value(value: Any) -> str:
     raise TypeError(f"cannot write {type(value).__name__} to TOML")
 
 
-def calibrated_profile_toml(profile: CameraProfile, fit: CalibrationFit, plan: SweepPlan, *, shots_dir: str,
-                            name: str | None = None) -> str:
+def calibrated_profile_toml(
+    profile: CameraProfile, fit: CalibrationFit, plan: SweepPlan, *, shots_dir: str, name: str | None = None
+) -> str:
     """A profile TOML: the profile with the fitted d_ls and filter centres scaled to the fitted d_a, plus a
     `[calibration]` table (date, sweep, residuals, sigmas) that the profile loader ignores."""
     fitted = fit.fitted
     aperture = scaled_aperture(profile.aperture, fitted.filter_centre_distance_mm)
     lens = profile.lens
     assert lens is not None
-    lines = [f"# Calibrated with `mca calibrate` from profile '{profile.name}' ({profile.source}).",
-             f"name = {_toml_value(name or profile.name + '-calibrated')}", "", "[camera]",
-             f"model = {_toml_value(profile.model)}"]
+    lines = [
+        f"# Calibrated with `mca calibrate` from profile '{profile.name}' ({profile.source}).",
+        f"name = {_toml_value(name or profile.name + '-calibrated')}",
+        "",
+        "[camera]",
+        f"model = {_toml_value(profile.model)}",
+    ]
     for key in ("pixel_pitch_mm", "width_px", "height_px"):
         if getattr(profile, key) is not None:
             lines.append(f"{key} = {_toml_value(getattr(profile, key))}")
-    lines += ["", "[lens]", f"focal_length_mm = {_toml_value(lens.focal_length_mm)}",
-              f"sensor_distance_mm = {_toml_value(round(fitted.sensor_distance_mm, 6))}"
-              f"   # fitted; focus at {fitted.focus_distance_mm:.2f} mm"]
+    lines += [
+        "",
+        "[lens]",
+        f"focal_length_mm = {_toml_value(lens.focal_length_mm)}",
+        f"sensor_distance_mm = {_toml_value(round(fitted.sensor_distance_mm, 6))}"
+        f"   # fitted; focus at {fitted.focus_distance_mm:.2f} mm",
+    ]
     if lens.f_number is not None:
         lines.append(f"f_number = {_toml_value(lens.f_number)}")
     lines += ["", "[aperture]", f"filter_diameter_mm = {_toml_value(aperture.filter_diameter_mm)}"]
     for channel in ("red", "green", "blue"):
         x, y = aperture.centre_mm(channel)
         lines.append(f"{channel} = {_toml_value([round(x, 6), round(y, 6)])}")
-    if profile.aperture.diameter_mm is not None and (lens.f_number is None or
-                                                     abs(lens.focal_length_mm / lens.f_number
-                                                         - profile.aperture.diameter_mm) > 1e-9):
+    if profile.aperture.diameter_mm is not None and (
+        lens.f_number is None or abs(lens.focal_length_mm / lens.f_number - profile.aperture.diameter_mm) > 1e-9
+    ):
         lines.append(f"diameter_mm = {_toml_value(profile.aperture.diameter_mm)}")
     if aperture.crosstalk is not None:
         lines.append(f"crosstalk = {_toml_value([list(r) for r in aperture.crosstalk])}")
     sigma = fit.sigma
-    lines += ["", "[calibration]",
-              f"date = {_toml_value(datetime.datetime.now().isoformat(timespec='seconds'))}",
-              f"from_profile = {_toml_value(profile.name)}",
-              f"sweep_from_mm = {_toml_value(plan.from_mm)}", f"sweep_to_mm = {_toml_value(plan.to_mm)}",
-              f"sweep_step_mm = {_toml_value(plan.step_mm)}",
-              f"target_distance_at_zero_mm = {_toml_value(plan.target_distance_at_zero_mm)}",
-              f"rail_start_mm = {_toml_value(plan.rail_start_mm)}",
-              f"points = {_toml_value(len(fit.distances_mm))}",
-              f"shots = {_toml_value(shots_dir)}",
-              f"free_parameters = {_toml_value([p for p in fit.free])}",
-              f"filter_centre_distance_mm = {_toml_value(fitted.filter_centre_distance_mm)}",
-              f"sensor_distance_mm = {_toml_value(fitted.sensor_distance_mm)}",
-              f"focus_distance_mm = {_toml_value(fitted.focus_distance_mm)}",
-              f"disparity_offset_px = {_toml_value(fitted.disparity_offset_px)}"
-              "   # fixed unless fitted: pixels of camera.pixel_pitch_mm",
-              f"residual_rms_px = {_toml_value(fit.residual_rms_px)}",
-              f"max_depth_error_mm = {_toml_value(fit.max_depth_error_mm)}"]
+    lines += [
+        "",
+        "[calibration]",
+        f"date = {_toml_value(datetime.datetime.now().isoformat(timespec='seconds'))}",
+        f"from_profile = {_toml_value(profile.name)}",
+        f"sweep_from_mm = {_toml_value(plan.from_mm)}",
+        f"sweep_to_mm = {_toml_value(plan.to_mm)}",
+        f"sweep_step_mm = {_toml_value(plan.step_mm)}",
+        f"target_distance_at_zero_mm = {_toml_value(plan.target_distance_at_zero_mm)}",
+        f"rail_start_mm = {_toml_value(plan.rail_start_mm)}",
+        f"points = {_toml_value(len(fit.distances_mm))}",
+        f"shots = {_toml_value(shots_dir)}",
+        f"free_parameters = {_toml_value([p for p in fit.free])}",
+        f"filter_centre_distance_mm = {_toml_value(fitted.filter_centre_distance_mm)}",
+        f"sensor_distance_mm = {_toml_value(fitted.sensor_distance_mm)}",
+        f"focus_distance_mm = {_toml_value(fitted.focus_distance_mm)}",
+        f"disparity_offset_px = {_toml_value(fitted.disparity_offset_px)}"
+        "   # fixed unless fitted: pixels of camera.pixel_pitch_mm",
+        f"residual_rms_px = {_toml_value(fit.residual_rms_px)}",
+        f"max_depth_error_mm = {_toml_value(fit.max_depth_error_mm)}",
+    ]
     for key, value in sigma.items():
         lines.append(f"sigma_{key} = {_toml_value(value)}")
     if len(fit.free) == 2:
         lines.append(f"correlation = {_toml_value(float(fit.correlation[0, 1]))}")
-    lines.append("three_parameter_singular_values = "
-                 f"{_toml_value(list(fit.three_parameter.singular_values))}   # d_a, d_ls, offset: rank 2")
-    lines += [f"nominal_filter_centre_distance_mm = {_toml_value(fit.nominal.filter_centre_distance_mm)}",
-              f"nominal_sensor_distance_mm = {_toml_value(fit.nominal.sensor_distance_mm)}",
-              f"distances_mm = {_toml_value([round(float(v), 4) for v in fit.distances_mm])}",
-              f"disparities_px = {_toml_value([round(float(v), 5) for v in fit.disparities_px])}",
-              f"residuals_px = {_toml_value([round(float(v), 5) for v in fit.residuals_px])}"]
+    lines.append(
+        "three_parameter_singular_values = "
+        f"{_toml_value(list(fit.three_parameter.singular_values))}   # d_a, d_ls, offset: rank 2"
+    )
+    lines += [
+        f"nominal_filter_centre_distance_mm = {_toml_value(fit.nominal.filter_centre_distance_mm)}",
+        f"nominal_sensor_distance_mm = {_toml_value(fit.nominal.sensor_distance_mm)}",
+        f"distances_mm = {_toml_value([round(float(v), 4) for v in fit.distances_mm])}",
+        f"disparities_px = {_toml_value([round(float(v), 5) for v in fit.disparities_px])}",
+        f"residuals_px = {_toml_value([round(float(v), 5) for v in fit.residuals_px])}",
+    ]
     return "\n".join(lines) + "\n"

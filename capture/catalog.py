@@ -1,8 +1,9 @@
 """The shot catalog `DIR/catalog.sqlite`: one row per shot with its file, size, sha256, times and status."""
+
 from __future__ import annotations
 
-import sqlite3
 import datetime
+import sqlite3
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -67,28 +68,36 @@ class Catalog:
     def close(self) -> None:
         self.db.close()
 
-    def __enter__(self) -> "Catalog":
+    def __enter__(self) -> Catalog:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def add_captured(self, camera_serial: str, camera_filename: str, camera_handle: int | None,
-                     size_bytes: int | None) -> int:
+    def add_captured(
+        self, camera_serial: str, camera_filename: str, camera_handle: int | None, size_bytes: int | None
+    ) -> int:
         cur = self.db.execute(
             "INSERT INTO shots (camera_serial, camera_filename, camera_handle, size_bytes, captured_at, status)"
-            " VALUES (?, ?, ?, ?, ?, 'captured')", (camera_serial, camera_filename, camera_handle, size_bytes, _now()))
+            " VALUES (?, ?, ?, ?, ?, 'captured')",
+            (camera_serial, camera_filename, camera_handle, size_bytes, _now()),
+        )
         self.db.commit()
         return int(cur.lastrowid)
 
     def mark_downloaded(self, shot_id: int, file_name: str, size_bytes: int, sha256: str) -> None:
-        self.db.execute("UPDATE shots SET file_name=?, size_bytes=?, sha256=?, downloaded_at=?, status='downloaded',"
-                        " message=NULL WHERE id=?", (file_name, size_bytes, sha256, _now(), shot_id))
+        self.db.execute(
+            "UPDATE shots SET file_name=?, size_bytes=?, sha256=?, downloaded_at=?, status='downloaded',"
+            " message=NULL WHERE id=?",
+            (file_name, size_bytes, sha256, _now(), shot_id),
+        )
         self.db.commit()
 
     def mark_processed(self, shot_id: int, result_path: str) -> None:
-        self.db.execute("UPDATE shots SET processed_at=?, status='processed', result_path=?, message=NULL WHERE id=?",
-                        (_now(), result_path, shot_id))
+        self.db.execute(
+            "UPDATE shots SET processed_at=?, status='processed', result_path=?, message=NULL WHERE id=?",
+            (_now(), result_path, shot_id),
+        )
         self.db.commit()
 
     def mark_failed(self, shot_id: int, message: str) -> None:
@@ -115,13 +124,18 @@ class Catalog:
 
     def missing(self, camera_serial: str) -> list[ShotRow]:
         """Shots the camera took that never reached the disk."""
-        cur = self.db.execute("SELECT * FROM shots WHERE camera_serial=? AND status='captured' ORDER BY id",
-                              (camera_serial,))
+        cur = self.db.execute(
+            "SELECT * FROM shots WHERE camera_serial=? AND status='captured' ORDER BY id", (camera_serial,)
+        )
         return [ShotRow(*r) for r in cur.fetchall()]
 
     def file_names(self) -> set[str]:
         return {r[0] for r in self.db.execute("SELECT file_name FROM shots WHERE file_name IS NOT NULL")}
 
     def has_camera_file(self, camera_serial: str, camera_filename: str) -> bool:
-        return self.db.execute("SELECT 1 FROM shots WHERE camera_serial=? AND camera_filename=?",
-                               (camera_serial, camera_filename)).fetchone() is not None
+        return (
+            self.db.execute(
+                "SELECT 1 FROM shots WHERE camera_serial=? AND camera_filename=?", (camera_serial, camera_filename)
+            ).fetchone()
+            is not None
+        )

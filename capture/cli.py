@@ -1,4 +1,5 @@
 """The `mca` command line: a typer app assembled from the modules in `capture.commands`."""
+
 from __future__ import annotations
 
 import importlib

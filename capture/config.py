@@ -13,15 +13,17 @@ taken relative to the folder of the file that names them.
 The loader is pure apart from reading the files: nothing here opens a camera or
 a serial port, it only checks that the values have a usable shape.
 """
+
 from __future__ import annotations
 
 import difflib
 import os
 import re
 import tomllib
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 SYSTEM_CONFIG = Path("/etc/mca/config.toml")
 ENV_VAR = "MCA_CONFIG"
@@ -47,11 +49,11 @@ class ConfigError(ValueError):
 class Config:
     """The effective configuration; `sources` maps each key to the file it came from, or "default"."""
 
-    profile: str = "paper-70d"      # built-in profile name or path to a profile TOML file
+    profile: str = "paper-70d"  # built-in profile name or path to a profile TOML file
     output_dir: Path = field(default_factory=lambda: Path("~/mca").expanduser())
-    camera: str = "auto"            # auto | sim | usb:BUS:ADDR | ptpip:HOST[:PORT]
-    rail: str = "sim"               # sim | a serial device such as /dev/ttyUSB0 | a pyserial URL
-    workers: int = 1                # processes the watcher runs in parallel
+    camera: str = "auto"  # auto | sim | usb:BUS:ADDR | ptpip:HOST[:PORT]
+    rail: str = "sim"  # sim | a serial device such as /dev/ttyUSB0 | a pyserial URL
+    workers: int = 1  # processes the watcher runs in parallel
     sources: Mapping[str, str] = field(default_factory=dict, compare=False)
 
     def source_of(self, key: str) -> str:
@@ -70,8 +72,9 @@ def user_config_path(env: Mapping[str, str] | None = None) -> Path:
     return root / "mca" / "config.toml"
 
 
-def config_paths(env: Mapping[str, str] | None = None, system_path: Path = SYSTEM_CONFIG,
-                 user_path: Path | None = None) -> list[Path]:
+def config_paths(
+    env: Mapping[str, str] | None = None, system_path: Path = SYSTEM_CONFIG, user_path: Path | None = None
+) -> list[Path]:
     """The files `load_config` reads, lowest precedence first (`MCA_CONFIG` alone if it is set)."""
     env = os.environ if env is None else env
     explicit = env.get(ENV_VAR)
@@ -136,14 +139,22 @@ def validate_value(path: Path, key: str, value: Any) -> Any:
         match = _PTPIP_ADDRESS.match(text)
         if match and (match.group(2) is None or 1 <= int(match.group(2)) <= 65535):
             return text
-        raise ConfigError(path, f"must be \"auto\", \"sim\", \"usb:BUS:ADDR\" (bus 1-255, address 1-127, "
-                                f"as lsusb shows them) or \"ptpip:HOST[:PORT]\", got {value!r}", key)
+        raise ConfigError(
+            path,
+            f'must be "auto", "sim", "usb:BUS:ADDR" (bus 1-255, address 1-127, '
+            f'as lsusb shows them) or "ptpip:HOST[:PORT]", got {value!r}',
+            key,
+        )
     if key == "rail":
         text = _check_str(path, key, value)
         if text == "sim" or text.startswith("/") or "://" in text:
             return text
-        raise ConfigError(path, f"must be \"sim\", a serial device path such as \"/dev/mca-rail\" or "
-                                f"\"/dev/ttyUSB0\", or a pyserial URL, got {value!r}", key)
+        raise ConfigError(
+            path,
+            f'must be "sim", a serial device path such as "/dev/mca-rail" or '
+            f'"/dev/ttyUSB0", or a pyserial URL, got {value!r}',
+            key,
+        )
     if key == "workers":
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(path, f"must be a whole number without quotes, got {value!r}", key)
@@ -170,8 +181,9 @@ def apply_file(config: Config, path: str | Path, data: Mapping[str, Any]) -> Con
     return replace(config, **changes, sources=sources)
 
 
-def load_config(env: Mapping[str, str] | None = None, system_path: Path = SYSTEM_CONFIG,
-                user_path: Path | None = None) -> Config:
+def load_config(
+    env: Mapping[str, str] | None = None, system_path: Path = SYSTEM_CONFIG, user_path: Path | None = None
+) -> Config:
     """The effective configuration: defaults, then the system file, then the user file (or `MCA_CONFIG` alone).
 
     Missing searched files are skipped; a missing `MCA_CONFIG` file is an error,
@@ -183,16 +195,30 @@ def load_config(env: Mapping[str, str] | None = None, system_path: Path = SYSTEM
     for path in config_paths(env, system_path, user_path):
         if not path.exists():
             if explicit:
-                raise ConfigError(path, f"no such file (named by ${ENV_VAR}); create it from "
-                                        "deploy/config.example.toml or unset the variable")
+                raise ConfigError(
+                    path,
+                    f"no such file (named by ${ENV_VAR}); create it from "
+                    "deploy/config.example.toml or unset the variable",
+                )
             continue
         data = read_config_file(path)
         config = apply_file(config, path, data)
     return config
 
 
-__all__ = ["Config", "ConfigError", "ENV_VAR", "KEYS", "SYSTEM_CONFIG", "apply_file", "config_paths",
-           "load_config", "read_config_file", "user_config_path", "validate_value"]
+__all__ = [
+    "ENV_VAR",
+    "KEYS",
+    "SYSTEM_CONFIG",
+    "Config",
+    "ConfigError",
+    "apply_file",
+    "config_paths",
+    "load_config",
+    "read_config_file",
+    "user_config_path",
+    "validate_value",
+]
 
 
 def fill_from_config(**given: Any) -> dict[str, Any]:

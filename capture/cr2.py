@@ -36,9 +36,11 @@ every even mosaic size from 22x22 up (5472x3648 included),
 ``rawpy.imread(p).raw_image_visible`` is exactly the mosaic and ``sizes``
 gives its width and height.
 """
+
 from __future__ import annotations
 
 import io
+import itertools
 import os
 import struct
 from concurrent.futures import ThreadPoolExecutor
@@ -61,15 +63,57 @@ MIN_SIDE_PX = 22  # LibRaw rejects images narrower or lower than this
 # SensorInfo, so the writer never produces one.
 _LIBRAW_CANON_TABLE_SIZES = frozenset(
     {
-        (1944, 1416), (2144, 1560), (2224, 1456), (2376, 1728), (2672, 1968), (3152, 2068),
-        (3160, 2344), (3344, 2484), (3516, 2328), (3596, 2360), (3744, 2784), (3944, 2622),
-        (3948, 2622), (3984, 2622), (4032, 2656), (4104, 3048), (4116, 2178), (4152, 2772),
-        (4160, 3124), (4176, 3062), (4192, 3062), (4312, 2876), (4352, 2850), (4352, 2874),
-        (4476, 2954), (4480, 3348), (4480, 3366), (4496, 3366), (4768, 3516), (4832, 3204),
-        (4832, 3228), (5108, 3349), (5120, 3318), (5280, 3528), (5344, 3516), (5344, 3584),
-        (5344, 3950), (5360, 3516), (5568, 3708), (5632, 3710), (5712, 3774), (5792, 3804),
-        (5920, 3950), (6096, 4051), (6096, 4056), (6288, 4056), (6384, 4224), (6880, 4544),
-        (6888, 4546), (7128, 4732), (8896, 5920),
+        (1944, 1416),
+        (2144, 1560),
+        (2224, 1456),
+        (2376, 1728),
+        (2672, 1968),
+        (3152, 2068),
+        (3160, 2344),
+        (3344, 2484),
+        (3516, 2328),
+        (3596, 2360),
+        (3744, 2784),
+        (3944, 2622),
+        (3948, 2622),
+        (3984, 2622),
+        (4032, 2656),
+        (4104, 3048),
+        (4116, 2178),
+        (4152, 2772),
+        (4160, 3124),
+        (4176, 3062),
+        (4192, 3062),
+        (4312, 2876),
+        (4352, 2850),
+        (4352, 2874),
+        (4476, 2954),
+        (4480, 3348),
+        (4480, 3366),
+        (4496, 3366),
+        (4768, 3516),
+        (4832, 3204),
+        (4832, 3228),
+        (5108, 3349),
+        (5120, 3318),
+        (5280, 3528),
+        (5344, 3516),
+        (5344, 3584),
+        (5344, 3950),
+        (5360, 3516),
+        (5568, 3708),
+        (5632, 3710),
+        (5712, 3774),
+        (5792, 3804),
+        (5920, 3950),
+        (6096, 4051),
+        (6096, 4056),
+        (6288, 4056),
+        (6384, 4224),
+        (6880, 4544),
+        (6888, 4546),
+        (7128, 4732),
+        (8896, 5920),
     }
 )
 
@@ -168,7 +212,9 @@ def _canonical_codes(lengths: dict[int, int]) -> tuple[list[int], list[int], np.
     return bits, order, code_of, len_of
 
 
-def _block_categories(rows: np.ndarray, above: np.ndarray | None, components: int, precision: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _block_categories(
+    rows: np.ndarray, above: np.ndarray | None, components: int, precision: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Predictor-1 differences of a block of JPEG rows, their categories and the category histogram.
 
     `above` is the row before the block (None for the first block): the first
@@ -388,7 +434,7 @@ def _jpeg_rows(frame: np.ndarray, slices: tuple[int, int, int]) -> np.ndarray:
     """Reorder the frame into the JPEG sample stream: slice by slice, each row-major."""
     count, width, last = slices
     edges = [i * width for i in range(count + 1)] + [count * width + last]
-    stream = np.concatenate([frame[:, a:b].reshape(-1) for a, b in zip(edges[:-1], edges[1:])])
+    stream = np.concatenate([frame[:, a:b].reshape(-1) for a, b in itertools.pairwise(edges)])
     return stream.reshape(frame.shape)
 
 
@@ -411,15 +457,21 @@ def _preview_images(mosaic: np.ndarray, black_level: int, white_level: int) -> t
     preview = rgb_at(step)
     ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(preview, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 85])
     thumb_w = min(160, preview.shape[1])
-    thumb = cv2.resize(preview, (thumb_w, max(1, round(thumb_w * preview.shape[0] / preview.shape[1]))), interpolation=cv2.INTER_AREA)
+    thumb = cv2.resize(
+        preview, (thumb_w, max(1, round(thumb_w * preview.shape[0] / preview.shape[1]))), interpolation=cv2.INTER_AREA
+    )
     ok2, tjpg = cv2.imencode(".jpg", cv2.cvtColor(thumb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 85])
-    small = cv2.resize(preview, (max(1, preview.shape[1] // 4), max(1, preview.shape[0] // 4)), interpolation=cv2.INTER_AREA)
+    small = cv2.resize(
+        preview, (max(1, preview.shape[1] // 4), max(1, preview.shape[0] // 4)), interpolation=cv2.INTER_AREA
+    )
     if not (ok and ok2):
         raise RuntimeError("opencv could not encode the preview JPEG")
     return jpg.tobytes(), tjpg.tobytes(), small
 
 
-def _maker_notes(meta: Cr2Metadata, frame: _Frame, mosaic_shape: tuple[int, int], black_level: int, white_level: int) -> list[_Entry]:
+def _maker_notes(
+    meta: Cr2Metadata, frame: _Frame, mosaic_shape: tuple[int, int], black_level: int, white_level: int
+) -> list[_Entry]:
     h, w = mosaic_shape
     entries = [_ascii(0x0006, meta.model)]
     if meta.model == "Canon EOS 70D":
@@ -433,15 +485,32 @@ def _maker_notes(meta: Cr2Metadata, frame: _Frame, mosaic_shape: tuple[int, int]
     if meta.lens_model:
         entries.append(_ascii(0x0095, meta.lens_model))
     # SensorInfo: LibRaw reads width = right - left, so the right/bottom borders are exclusive here.
-    sensor_info = [34, frame.width_px, frame.height_px, 0, 0, frame.left_px, frame.top_px,
-                   frame.left_px + w, frame.top_px + h, 2, frame.top_px, frame.left_px - 2, frame.top_px + h - 1, 0, 0, 0, 0]
+    sensor_info = [
+        34,
+        frame.width_px,
+        frame.height_px,
+        0,
+        0,
+        frame.left_px,
+        frame.top_px,
+        frame.left_px + w,
+        frame.top_px + h,
+        2,
+        frame.top_px,
+        frame.left_px - 2,
+        frame.top_px + h - 1,
+        0,
+        0,
+        0,
+        0,
+    ]
     entries.append(_shorts(0x00E0, sensor_info))
     # ColorData7, version 10 (the 70D's record, 1313 int16): WB as shot, black and white levels.
     color = [0] * 1313
     color[0] = 10
-    color[0x3F : 0x43] = list(meta.wb_rggb)
+    color[0x3F:0x43] = list(meta.wb_rggb)
     color[0x43] = 5200
-    color[0x1F8 : 0x1FC] = [black_level] * 4
+    color[0x1F8:0x1FC] = [black_level] * 4
     color[0x1FC] = white_level
     color[0x1FD] = white_level
     entries.append(_shorts(0x4001, color))
@@ -522,7 +591,8 @@ def cr2_bytes(
     if preview:
         big, thumb, small = _preview_images(mosaic, black_level, white_level)
         ifd0 += [
-            _longs(0x0100, [0]), _longs(0x0101, [0]),  # patched below with the preview size
+            _longs(0x0100, [0]),
+            _longs(0x0101, [0]),  # patched below with the preview size
             _shorts(0x0103, [6]),
             _pointer(0x0111, "preview"),
             _longs(0x0117, [len(big)]),
@@ -534,9 +604,15 @@ def cr2_bytes(
         ]
         sh, sw = small.shape[:2]
         ifds["ifd2"] = [
-            _longs(0x0100, [sw]), _longs(0x0101, [sh]), _shorts(0x0102, [8, 8, 8]),
-            _shorts(0x0103, [1]), _shorts(0x0106, [2]), _pointer(0x0111, "small"),
-            _shorts(0x0115, [3]), _longs(0x0116, [sh]), _longs(0x0117, [small.nbytes]),
+            _longs(0x0100, [sw]),
+            _longs(0x0101, [sh]),
+            _shorts(0x0102, [8, 8, 8]),
+            _shorts(0x0103, [1]),
+            _shorts(0x0106, [2]),
+            _pointer(0x0111, "small"),
+            _shorts(0x0115, [3]),
+            _longs(0x0116, [sh]),
+            _longs(0x0117, [small.nbytes]),
         ]
         import cv2  # only for the size of the preview JPEG
 

@@ -7,6 +7,7 @@ fails leaves no temporary file behind. The PLY and GLB formats are written by th
 small encoders below, and read back by their twins (`read_ply`, `read_glb`) which
 the tests and `mca` tools use to check them.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -17,9 +18,10 @@ import os
 import struct
 import uuid
 import zlib
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -55,11 +57,10 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
 def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
     """Write `data` to `path` atomically (temporary file in the same folder, flushed, then os.replace)."""
     path = Path(path)
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as handle:
-            handle.write(data)
-            handle.flush()
-            os.fsync(handle.fileno())
+    with atomic_path(path) as tmp, open(tmp, "wb") as handle:
+        handle.write(data)
+        handle.flush()
+        os.fsync(handle.fileno())
     return path
 
 
@@ -74,7 +75,7 @@ def _srgb8_table() -> np.ndarray:
     return np.round(srgb * 255.0).astype(np.uint8)
 
 
-SRGB_CHUNK_VALUES = 1 << 18   # values converted per pass: the temporaries stay in cache, none is full size
+SRGB_CHUNK_VALUES = 1 << 18  # values converted per pass: the temporaries stay in cache, none is full size
 
 
 def linear_to_srgb8(linear: np.ndarray) -> np.ndarray:
@@ -86,14 +87,14 @@ def linear_to_srgb8(linear: np.ndarray) -> np.ndarray:
     scaled = np.empty(min(flat.size, SRGB_CHUNK_VALUES), np.float32)
     index = np.empty(scaled.shape, np.uint16)
     for start in range(0, flat.size, SRGB_CHUNK_VALUES):
-        part = flat[start:start + SRGB_CHUNK_VALUES]
-        s, i = scaled[:part.size], index[:part.size]
-        np.fmax(part, np.float32(0.0), out=s)        # fmax/fmin drop NaN: NaN and -inf to 0, +inf to 1
+        part = flat[start : start + SRGB_CHUNK_VALUES]
+        s, i = scaled[: part.size], index[: part.size]
+        np.fmax(part, np.float32(0.0), out=s)  # fmax/fmin drop NaN: NaN and -inf to 0, +inf to 1
         np.fmin(s, np.float32(1.0), out=s)
         np.multiply(s, np.float32(65535.0), out=s)
         np.add(s, np.float32(0.5), out=s)
-        np.copyto(i, s, casting="unsafe")          # truncation: round half up
-        np.take(table, i, out=out[start:start + part.size])
+        np.copyto(i, s, casting="unsafe")  # truncation: round half up
+        np.take(table, i, out=out[start : start + part.size])
     return out.reshape(x.shape)
 
 
@@ -104,9 +105,9 @@ def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
 
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-PNG_COLOUR_TYPES = {1: 0, 3: 2, 4: 6}          # samples per pixel -> PNG colour type (grey, RGB, RGBA)
-PNG_DEFLATE_LEVEL = 1                           # zlib level: the fastest; Up filtering does most of the work
-DEFLATE_SEGMENT_BYTES = 1 << 20                 # compressed independently (full flush), so zero runs are reused
+PNG_COLOUR_TYPES = {1: 0, 3: 2, 4: 6}  # samples per pixel -> PNG colour type (grey, RGB, RGBA)
+PNG_DEFLATE_LEVEL = 1  # zlib level: the fastest; Up filtering does most of the work
+DEFLATE_SEGMENT_BYTES = 1 << 20  # compressed independently (full flush), so zero runs are reused
 
 
 def _png_chunk(kind: bytes, data: bytes) -> bytes:
@@ -120,7 +121,7 @@ def _png_scanlines(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     upsampled maps; zero rows take None (type 0), so they are zero bytes, and the long empty
     stretches of a layer compress to reused segments (`_deflate_zlib`) without being filtered.
     """
-    samples = image.astype(">u2") if image.dtype == np.uint16 else image      # PNG stores 16-bit big-endian
+    samples = image.astype(">u2") if image.dtype == np.uint16 else image  # PNG stores 16-bit big-endian
     rows = samples.reshape(samples.shape[0], -1).view(np.uint8)
     height, width = rows.shape
     words = rows.view(np.uint64) if width % 8 == 0 else rows
@@ -128,10 +129,10 @@ def _png_scanlines(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     lines = np.zeros((height, width + 1), np.uint8)
     filled = np.flatnonzero(~zero)
     if filled.size:
-        first, last = int(filled[0]), int(filled[-1]) + 1          # outside [first, last) all rows are zero
+        first, last = int(filled[0]), int(filled[-1]) + 1  # outside [first, last) all rows are zero
         lines[first:last, 0] = 2
         lines[first, 1:] = rows[first]
-        np.subtract(rows[first + 1:last], rows[first:last - 1], out=lines[first + 1:last, 1:])
+        np.subtract(rows[first + 1 : last], rows[first : last - 1], out=lines[first + 1 : last, 1:])
         if filled.size < last - first:
             lines[first:last][zero[first:last]] = 0
     return lines, zero
@@ -152,13 +153,13 @@ def _deflate_zlib(lines: np.ndarray, zero_rows: np.ndarray) -> bytes:
     rows_per_segment = max(1, DEFLATE_SEGMENT_BYTES // lines.shape[1])
     parts = [b"\x78\x01"]
     for start in range(0, lines.shape[0], rows_per_segment):
-        segment = lines[start:start + rows_per_segment]
-        if zero_rows[start:start + rows_per_segment].all():
+        segment = lines[start : start + rows_per_segment]
+        if zero_rows[start : start + rows_per_segment].all():
             parts.append(_deflated_zeros(segment.nbytes))
             continue
         compressor = zlib.compressobj(PNG_DEFLATE_LEVEL, zlib.DEFLATED, -15, 9, zlib.Z_RLE)
         parts.append(compressor.compress(segment) + compressor.flush(zlib.Z_FULL_FLUSH))
-    parts.append(b"\x03\x00")                                   # empty final fixed-Huffman block
+    parts.append(b"\x03\x00")  # empty final fixed-Huffman block
     parts.append(struct.pack(">I", zlib.adler32(lines)))
     return b"".join(parts)
 
@@ -174,12 +175,18 @@ def encode_png(image: np.ndarray) -> bytes:
     if image.dtype not in (np.uint8, np.uint16):
         raise TypeError(f"PNG holds uint8 or uint16 samples, got {image.dtype}")
     channels = 1 if image.ndim == 2 else image.shape[2] if image.ndim == 3 else 0
-    if channels not in PNG_COLOUR_TYPES or image.ndim == 3 and channels == 1 or 0 in image.shape:
+    if channels not in PNG_COLOUR_TYPES or (image.ndim == 3 and channels == 1) or 0 in image.shape:
         raise ValueError(f"PNG image must be (H, W), (H, W, 3) or (H, W, 4), got shape {image.shape}")
     height, width = image.shape[:2]
     header = struct.pack(">IIBBBBB", width, height, 8 * image.dtype.itemsize, PNG_COLOUR_TYPES[channels], 0, 0, 0)
-    return b"".join([PNG_SIGNATURE, _png_chunk(b"IHDR", header),
-                     _png_chunk(b"IDAT", _deflate_zlib(*_png_scanlines(image))), _png_chunk(b"IEND", b"")])
+    return b"".join(
+        [
+            PNG_SIGNATURE,
+            _png_chunk(b"IHDR", header),
+            _png_chunk(b"IDAT", _deflate_zlib(*_png_scanlines(image))),
+            _png_chunk(b"IEND", b""),
+        ]
+    )
 
 
 def write_png(path: str | Path, image: np.ndarray) -> Path:
@@ -187,7 +194,7 @@ def write_png(path: str | Path, image: np.ndarray) -> Path:
     return write_bytes_atomic(path, encode_png(image))
 
 
-TIFF_DEFLATE_LEVEL = 1   # depth maps are piecewise constant: level 1 is 180x smaller than raw at 1/8 s per 20 MP
+TIFF_DEFLATE_LEVEL = 1  # depth maps are piecewise constant: level 1 is 180x smaller than raw at 1/8 s per 20 MP
 
 
 def write_tiff_float32(path: str | Path, image: np.ndarray) -> Path:
@@ -198,8 +205,9 @@ def write_tiff_float32(path: str | Path, image: np.ndarray) -> Path:
     if array.ndim != 2:
         raise ValueError(f"expected a 2-D map, got shape {array.shape}")
     with atomic_path(path) as tmp:
-        tifffile.imwrite(tmp, array, photometric="minisblack", compression="zlib",
-                         compressionargs={"level": TIFF_DEFLATE_LEVEL})
+        tifffile.imwrite(
+            tmp, array, photometric="minisblack", compression="zlib", compressionargs={"level": TIFF_DEFLATE_LEVEL}
+        )
     return Path(path)
 
 
@@ -234,9 +242,24 @@ def write_json(path: str | Path, data: Any) -> Path:
 # --- PLY point cloud ------------------------------------------------------------------------------------------------
 
 PLY_VERTEX = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
-_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "<i2", "int16": "<i2",
-              "ushort": "<u2", "uint16": "<u2", "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4",
-              "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8"}
+_PLY_TYPES = {
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "<i2",
+    "int16": "<i2",
+    "ushort": "<u2",
+    "uint16": "<u2",
+    "int": "<i4",
+    "int32": "<i4",
+    "uint": "<u4",
+    "uint32": "<u4",
+    "float": "<f4",
+    "float32": "<f4",
+    "double": "<f8",
+    "float64": "<f8",
+}
 
 
 def encode_ply(points_mm: np.ndarray, colours_rgb8: np.ndarray, comments: tuple[str, ...] = ()) -> bytes:
@@ -251,14 +274,16 @@ def encode_ply(points_mm: np.ndarray, colours_rgb8: np.ndarray, comments: tuple[
     header = ["ply", "format binary_little_endian 1.0"]
     header += [f"comment {c}" for c in comments]
     header += [f"element vertex {len(points)}"]
-    header += [f"property {'float' if vertices.dtype[name].kind == 'f' else 'uchar'} {name}"
-               for name in PLY_VERTEX.names]
+    header += [
+        f"property {'float' if vertices.dtype[name].kind == 'f' else 'uchar'} {name}" for name in PLY_VERTEX.names
+    ]
     header += ["end_header"]
     return ("\n".join(header) + "\n").encode("ascii") + vertices.tobytes()
 
 
-def write_ply(path: str | Path, points_mm: np.ndarray, colours_rgb8: np.ndarray,
-              comments: tuple[str, ...] = ()) -> Path:
+def write_ply(
+    path: str | Path, points_mm: np.ndarray, colours_rgb8: np.ndarray, comments: tuple[str, ...] = ()
+) -> Path:
     """Write coloured points as a binary little-endian PLY, atomically."""
     return write_bytes_atomic(path, encode_ply(points_mm, colours_rgb8, comments))
 
@@ -276,7 +301,7 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, list[str]]:
     for line in lines[1:]:
         words = line.split()
         if words[0] == "comment":
-            comments.append(line[len("comment "):])
+            comments.append(line[len("comment ") :])
         elif words[0] == "element":
             if element is not None:
                 raise ValueError(f"{path}: more than one element; only a vertex list is read here")
@@ -285,7 +310,7 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, list[str]]:
             if words[1] == "list":
                 raise ValueError(f"{path}: list properties are not read here")
             fields.append((words[2], _PLY_TYPES[words[1]]))
-    body = data[end + len(b"end_header\n"):]
+    body = data[end + len(b"end_header\n") :]
     dtype = np.dtype(fields)
     if len(body) != count * dtype.itemsize:
         raise ValueError(f"{path}: {len(body)} bytes of data for {count} vertices of {dtype.itemsize} bytes")
@@ -294,19 +319,33 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, list[str]]:
 
 # --- glTF 2.0 binary (GLB) with one textured quad per plane ---------------------------------------------------------
 
-GLB_MAGIC = 0x46546C67        # b"glTF"
-GLB_CHUNK_JSON = 0x4E4F534A   # b"JSON"
-GLB_CHUNK_BIN = 0x004E4942    # b"BIN\0"
+GLB_MAGIC = 0x46546C67  # b"glTF"
+GLB_CHUNK_JSON = 0x4E4F534A  # b"JSON"
+GLB_CHUNK_BIN = 0x004E4942  # b"BIN\0"
 _FLOAT, _UNSIGNED_SHORT = 5126, 5123
 _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
 _COMPONENTS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
 _COMPONENT_DTYPES = {5120: "i1", 5121: "u1", 5122: "<i2", 5123: "<u2", 5125: "<u4", 5126: "<f4"}
 
 # Camera frame (x right, y down, z forward, mm) to glTF (x right, y up, z toward the viewer, metres).
-CAMERA_MM_TO_GLTF_M = (0.001, 0.0, 0.0, 0.0,
-                       0.0, -0.001, 0.0, 0.0,
-                       0.0, 0.0, -0.001, 0.0,
-                       0.0, 0.0, 0.0, 1.0)   # column-major, as glTF stores node matrices
+CAMERA_MM_TO_GLTF_M = (
+    0.001,
+    0.0,
+    0.0,
+    0.0,
+    0.0,
+    -0.001,
+    0.0,
+    0.0,
+    0.0,
+    0.0,
+    -0.001,
+    0.0,
+    0.0,
+    0.0,
+    0.0,
+    1.0,
+)  # column-major, as glTF stores node matrices
 
 
 @dataclass(frozen=True)
@@ -315,7 +354,7 @@ class TexturedQuad:
     as seen in the image; `texture_png` covers it with the image's top-left at the top-left corner."""
 
     name: str
-    corners_mm: np.ndarray        # (4, 3) float
+    corners_mm: np.ndarray  # (4, 3) float
     texture_png: bytes
     extras: dict[str, Any] | None = None
 
@@ -324,8 +363,13 @@ def _pad4(data: bytes, fill: bytes = b"\0") -> bytes:
     return data + fill * (-len(data) % 4)
 
 
-def encode_glb(quads: list[TexturedQuad], *, root_matrix: tuple[float, ...] = CAMERA_MM_TO_GLTF_M,
-               root_name: str = "camera frame (mm)", generator: str = "mca-appliance capture.outputs") -> bytes:
+def encode_glb(
+    quads: list[TexturedQuad],
+    *,
+    root_matrix: tuple[float, ...] = CAMERA_MM_TO_GLTF_M,
+    root_name: str = "camera frame (mm)",
+    generator: str = "mca-appliance capture.outputs",
+) -> bytes:
     """glTF 2.0 binary: one unlit, double-sided, alpha-blended textured quad per entry, under one root node.
 
     Vertex positions stay in the quads' own units (mm, camera frame); the root node's matrix
@@ -345,8 +389,12 @@ def encode_glb(quads: list[TexturedQuad], *, root_matrix: tuple[float, ...] = CA
         return len(buffer_views) - 1
 
     def accessor(array: np.ndarray, kind: str, component: int, target: int, bounds: bool) -> int:
-        entry: dict[str, Any] = {"bufferView": view(array.tobytes(), target), "componentType": component,
-                                 "count": int(array.shape[0]), "type": kind}
+        entry: dict[str, Any] = {
+            "bufferView": view(array.tobytes(), target),
+            "componentType": component,
+            "count": int(array.shape[0]),
+            "type": kind,
+        }
         if bounds:
             values = array.reshape(array.shape[0], -1)
             entry["min"] = [float(v) for v in values.min(axis=0)]
@@ -355,7 +403,7 @@ def encode_glb(quads: list[TexturedQuad], *, root_matrix: tuple[float, ...] = CA
         return len(accessors) - 1
 
     texcoords = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype="<f4")
-    indices = np.array([0, 3, 2, 0, 2, 1], dtype="<u2")   # counter-clockwise seen from the camera (glTF +z)
+    indices = np.array([0, 3, 2, 0, 2, 1], dtype="<u2")  # counter-clockwise seen from the camera (glTF +z)
     meshes, materials, textures, images, nodes = [], [], [], [], []
     for quad in quads:
         corners = np.asarray(quad.corners_mm, dtype="<f4").reshape(4, 3)
@@ -366,12 +414,31 @@ def encode_glb(quads: list[TexturedQuad], *, root_matrix: tuple[float, ...] = CA
         index = accessor(indices, "SCALAR", _UNSIGNED_SHORT, _ELEMENT_ARRAY_BUFFER, bounds=True)
         images.append({"bufferView": view(quad.texture_png, None), "mimeType": "image/png", "name": quad.name})
         textures.append({"source": len(images) - 1, "sampler": 0})
-        materials.append({"name": quad.name, "doubleSided": True, "alphaMode": "BLEND",
-                          "pbrMetallicRoughness": {"baseColorTexture": {"index": len(textures) - 1},
-                                                   "metallicFactor": 0.0, "roughnessFactor": 1.0},
-                          "extensions": {"KHR_materials_unlit": {}}})
-        meshes.append({"name": quad.name, "primitives": [{"attributes": {"POSITION": position, "TEXCOORD_0": uv},
-                                                          "indices": index, "material": len(materials) - 1}]})
+        materials.append(
+            {
+                "name": quad.name,
+                "doubleSided": True,
+                "alphaMode": "BLEND",
+                "pbrMetallicRoughness": {
+                    "baseColorTexture": {"index": len(textures) - 1},
+                    "metallicFactor": 0.0,
+                    "roughnessFactor": 1.0,
+                },
+                "extensions": {"KHR_materials_unlit": {}},
+            }
+        )
+        meshes.append(
+            {
+                "name": quad.name,
+                "primitives": [
+                    {
+                        "attributes": {"POSITION": position, "TEXCOORD_0": uv},
+                        "indices": index,
+                        "material": len(materials) - 1,
+                    }
+                ],
+            }
+        )
         node: dict[str, Any] = {"name": quad.name, "mesh": len(meshes) - 1}
         if quad.extras:
             node["extras"] = json_safe(quad.extras)
@@ -386,13 +453,19 @@ def encode_glb(quads: list[TexturedQuad], *, root_matrix: tuple[float, ...] = CA
         "nodes": [root] + nodes,
     }
     if quads:
-        gltf.update({
-            "extensionsUsed": ["KHR_materials_unlit"],
-            "meshes": meshes, "materials": materials, "textures": textures, "images": images,
-            "samplers": [{"magFilter": 9729, "minFilter": 9729, "wrapS": 33071, "wrapT": 33071}],
-            "accessors": accessors, "bufferViews": buffer_views,
-            "buffers": [{"byteLength": len(blob)}],
-        })
+        gltf.update(
+            {
+                "extensionsUsed": ["KHR_materials_unlit"],
+                "meshes": meshes,
+                "materials": materials,
+                "textures": textures,
+                "images": images,
+                "samplers": [{"magFilter": 9729, "minFilter": 9729, "wrapS": 33071, "wrapT": 33071}],
+                "accessors": accessors,
+                "bufferViews": buffer_views,
+                "buffers": [{"byteLength": len(blob)}],
+            }
+        )
     json_chunk = _pad4(json.dumps(gltf, separators=(",", ":")).encode("utf-8"), b" ")
     chunks = struct.pack("<II", len(json_chunk), GLB_CHUNK_JSON) + json_chunk
     if blob:
@@ -418,14 +491,14 @@ def read_glb(path: str | Path) -> tuple[dict[str, Any], bytes]:
     json_length, json_type = struct.unpack_from("<II", data, 12)
     if json_type != GLB_CHUNK_JSON or json_length % 4:
         raise ValueError(f"{path}: first chunk must be JSON with a length multiple of 4")
-    gltf = json.loads(data[20:20 + json_length].decode("utf-8"))
+    gltf = json.loads(data[20 : 20 + json_length].decode("utf-8"))
     offset = 20 + json_length
     binary = b""
     if offset < len(data):
         bin_length, bin_type = struct.unpack_from("<II", data, offset)
         if bin_type != GLB_CHUNK_BIN or offset + 8 + bin_length != len(data):
             raise ValueError(f"{path}: second chunk must be BIN and end the file")
-        binary = data[offset + 8:]
+        binary = data[offset + 8 :]
     return gltf, binary
 
 
@@ -446,4 +519,4 @@ def glb_image(gltf: dict[str, Any], binary: bytes, index: int) -> bytes:
     """The encoded bytes of image `index` (stored in a buffer view)."""
     buffer_view = gltf["bufferViews"][gltf["images"][index]["bufferView"]]
     start = buffer_view.get("byteOffset", 0)
-    return binary[start:start + buffer_view["byteLength"]]
+    return binary[start : start + buffer_view["byteLength"]]

@@ -6,6 +6,7 @@ and never raises for a bad input file (it returns a failed `FileOutcome` naming 
 A folder counts as finished when its `result.json` exists; that file is written last.
 What each output holds is described in docs/outputs.md.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -13,9 +14,10 @@ import dataclasses
 import datetime as _dt
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -24,11 +26,11 @@ from mca.capture.raw import IMAGE_EXTENSIONS, RAW_EXTENSIONS, RawFrame, read_raw
 from mca.processing.camera import CameraProfile
 from mca.processing.result import DepthResult
 
-SUPPORTED_SUFFIXES = frozenset(RAW_EXTENSIONS) | frozenset(IMAGE_EXTENSIONS)   # what `read_raw` reads
+SUPPORTED_SUFFIXES = frozenset(RAW_EXTENSIONS) | frozenset(IMAGE_EXTENSIONS)  # what `read_raw` reads
 RESULT_NAME = "result.json"
 RECORDING_NAME = "recording.rrd"
 MAX_PLY_POINTS = 1_000_000
-LAYER_ORDER = "front-to-back"      # layers/00.png is the nearest plane
+LAYER_ORDER = "front-to-back"  # layers/00.png is the nearest plane
 
 PipelineFunction = Callable[..., DepthResult]
 
@@ -38,29 +40,29 @@ class FileOutcome:
     """What became of one input file."""
 
     input_path: Path
-    status: str                          # "done", "skipped" (already finished) or "failed"
+    status: str  # "done", "skipped" (already finished) or "failed"
     output_dir: Path
     seconds: float = 0.0
-    reason: str | None = None            # why it failed or was skipped
-    regions: int | None = None           # number of regions found, when done
+    reason: str | None = None  # why it failed or was skipped
+    regions: int | None = None  # number of regions found, when done
 
 
 @dataclass
 class LoadedInput:
     """An input file ready for the pipeline."""
 
-    frame: RawFrame                      # what the recorder logs
-    planes: np.ndarray                   # (H, W, 3) float32 linear RGB at processing resolution
-    pixel_scale: float                   # input-image pixels per processing pixel
-    input_size_px: tuple[int, int]       # (width, height) of the input image
-    pixel_pitch_mm: float | None         # pitch of one input-image pixel, when known
+    frame: RawFrame  # what the recorder logs
+    planes: np.ndarray  # (H, W, 3) float32 linear RGB at processing resolution
+    pixel_scale: float  # input-image pixels per processing pixel
+    input_size_px: tuple[int, int]  # (width, height) of the input image
+    pixel_pitch_mm: float | None  # pitch of one input-image pixel, when known
     metadata: dict[str, Any]
 
 
 # --- reading --------------------------------------------------------------------------------------------------------
 
 
-DOWNSCALED_RAW_RATIO = 1.5   # a raw this much narrower than its body's active area is a downscaled one
+DOWNSCALED_RAW_RATIO = 1.5  # a raw this much narrower than its body's active area is a downscaled one
 
 
 def input_pixel_pitch_mm(frame: RawFrame, input_width_px: int) -> float | None:
@@ -91,9 +93,14 @@ def read_input(path: Path) -> LoadedInput:
     height, width = planes.shape[:2]
     scale = 2.0 if frame.half_resolution else 1.0
     size = (int(round(width * scale)), int(round(height * scale)))
-    return LoadedInput(frame=frame, planes=planes, pixel_scale=scale, input_size_px=size,
-                       pixel_pitch_mm=input_pixel_pitch_mm(frame, size[0]),
-                       metadata=dataclasses.asdict(frame.metadata))
+    return LoadedInput(
+        frame=frame,
+        planes=planes,
+        pixel_scale=scale,
+        input_size_px=size,
+        pixel_pitch_mm=input_pixel_pitch_mm(frame, size[0]),
+        metadata=dataclasses.asdict(frame.metadata),
+    )
 
 
 def bayer_channel_offsets_px(cfa_pattern: str | None) -> tuple[tuple[float, float], ...] | None:
@@ -107,21 +114,30 @@ def bayer_channel_offsets_px(cfa_pattern: str | None) -> tuple[tuple[float, floa
     sites: dict[str, list[tuple[int, int]]] = {"R": [], "G": [], "B": []}
     for index, letter in enumerate(cfa_pattern.upper()):
         sites[letter].append((index % 2, index // 2))
-    return tuple((float(np.mean([x for x, _ in sites[c]]) - 0.5) / 2.0,
-                  float(np.mean([y for _, y in sites[c]]) - 0.5) / 2.0) for c in "RGB")
+    return tuple(
+        (float(np.mean([x for x, _ in sites[c]]) - 0.5) / 2.0, float(np.mean([y for _, y in sites[c]]) - 0.5) / 2.0)
+        for c in "RGB"
+    )
 
 
 def upsample_nearest(array: np.ndarray, pixel_scale: float, size_px: tuple[int, int]) -> np.ndarray:
     """Nearest-neighbour resampling of a processing-resolution map to the input size (width, height)."""
     height, width = array.shape[:2]
     factor = int(pixel_scale)
-    if (factor == pixel_scale and factor in (2, 4) and array.ndim == 2 and array.dtype in (np.uint16, np.float32)
-            and size_px[0] <= width * factor and size_px[1] <= height * factor):
-        import cv2      # pixel i takes source pixel i // factor, exactly as below, without the index arrays
+    if (
+        factor == pixel_scale
+        and factor in (2, 4)
+        and array.ndim == 2
+        and array.dtype in (np.uint16, np.float32)
+        and size_px[0] <= width * factor
+        and size_px[1] <= height * factor
+    ):
+        import cv2  # pixel i takes source pixel i // factor, exactly as below, without the index arrays
 
-        enlarged = cv2.resize(np.ascontiguousarray(array), (width * factor, height * factor),
-                              interpolation=cv2.INTER_NEAREST)
-        return enlarged[:size_px[1], :size_px[0]]
+        enlarged = cv2.resize(
+            np.ascontiguousarray(array), (width * factor, height * factor), interpolation=cv2.INTER_NEAREST
+        )
+        return enlarged[: size_px[1], : size_px[0]]
     rows = np.minimum(((np.arange(size_px[1]) + 0.5) / pixel_scale).astype(np.intp), height - 1)
     cols = np.minimum(((np.arange(size_px[0]) + 0.5) / pixel_scale).astype(np.intp), width - 1)
     return array[rows[:, None], cols[None, :]]
@@ -131,8 +147,8 @@ def upsample_nearest(array: np.ndarray, pixel_scale: float, size_px: tuple[int, 
 class Pinhole:
     """Back-projection of input-image pixels: x = (u - cx) * pitch * Z / d_ls (camera frame, x right, y down, mm)."""
 
-    pixel_pitch_mm: float          # pitch of one input-image pixel
-    sensor_distance_mm: float      # the paper's d_ls
+    pixel_pitch_mm: float  # pitch of one input-image pixel
+    sensor_distance_mm: float  # the paper's d_ls
     width_px: int
     height_px: int
 
@@ -148,8 +164,13 @@ class Pinhole:
         return np.stack([(u_px - cx) * scale * z_mm, (v_px - cy) * scale * z_mm, z_mm], axis=-1)
 
 
-def scene_points(depth_mm: np.ndarray, colours_rgb8: np.ndarray, pixel_scale: float, camera: Pinhole,
-                 max_points: int = MAX_PLY_POINTS) -> tuple[np.ndarray, np.ndarray]:
+def scene_points(
+    depth_mm: np.ndarray,
+    colours_rgb8: np.ndarray,
+    pixel_scale: float,
+    camera: Pinhole,
+    max_points: int = MAX_PLY_POINTS,
+) -> tuple[np.ndarray, np.ndarray]:
     """Coloured camera-frame points of every known-depth pixel, on a regular stride so at most `max_points`."""
     valid = np.isfinite(depth_mm) & (depth_mm > 0)
     stride = max(1, math.ceil(math.sqrt(int(valid.sum()) / max_points)))
@@ -158,7 +179,7 @@ def scene_points(depth_mm: np.ndarray, colours_rgb8: np.ndarray, pixel_scale: fl
     sub = valid[::stride, ::stride]
     rows, cols = np.nonzero(sub)
     rows, cols = rows * stride, cols * stride
-    u = (cols + 0.5) * pixel_scale - 0.5                 # pixel centres in input-image coordinates
+    u = (cols + 0.5) * pixel_scale - 0.5  # pixel centres in input-image coordinates
     v = (rows + 0.5) * pixel_scale - 0.5
     points = camera.back_project(u, v, depth_mm[rows, cols].astype(np.float64))
     return points.astype(np.float32), colours_rgb8[rows, cols]
@@ -175,7 +196,7 @@ def _box_of(mask: np.ndarray) -> tuple[slice, slice] | None:
     rows = np.flatnonzero(mask.any(axis=1))
     if rows.size == 0:
         return None
-    cols = np.flatnonzero(mask[rows[0]:rows[-1] + 1].any(axis=0))
+    cols = np.flatnonzero(mask[rows[0] : rows[-1] + 1].any(axis=0))
     return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
 
 
@@ -216,8 +237,13 @@ def region_boxes(labels: np.ndarray) -> list[tuple[slice, slice] | None]:
     return ndimage.find_objects(np.asarray(labels).astype(np.int32, copy=False))
 
 
-def region_quads(result: DepthResult, textures_png: dict[int, bytes], all_in_focus8: np.ndarray, camera: Pinhole,
-                 boxes: list[tuple[slice, slice] | None] | None = None) -> list[outputs.TexturedQuad]:
+def region_quads(
+    result: DepthResult,
+    textures_png: dict[int, bytes],
+    all_in_focus8: np.ndarray,
+    camera: Pinhole,
+    boxes: list[tuple[slice, slice] | None] | None = None,
+) -> list[outputs.TexturedQuad]:
     """One quad per region with a distance, front to back: its bounding box back-projected at its distance.
 
     `textures_png[id]` is the region's layer cropped to its box, as PNG; a region without one is
@@ -242,9 +268,14 @@ def region_quads(result: DepthResult, textures_png: dict[int, bytes], all_in_foc
         u = np.array([left, right, right, left])
         v = np.array([top, top, bottom, bottom])
         corners = camera.back_project(u, v, np.full(4, float(z)))
-        quads.append(outputs.TexturedQuad(name=f"region {region.id}", corners_mm=corners, texture_png=texture,
-                                          extras={"region_id": region.id, "order": region.order,
-                                                  "distance_mm": float(z)}))
+        quads.append(
+            outputs.TexturedQuad(
+                name=f"region {region.id}",
+                corners_mm=corners,
+                texture_png=texture,
+                extras={"region_id": region.id, "order": region.order, "distance_mm": float(z)},
+            )
+        )
     return quads
 
 
@@ -269,19 +300,26 @@ def _clean_folder(out_dir: Path) -> None:
         if not folder.is_dir():
             continue
         for entry in folder.iterdir():
-            if entry.name.startswith(".") and entry.name.endswith(outputs.TEMP_SUFFIX):
-                entry.unlink(missing_ok=True)
-            elif folder.name == "layers" and entry.suffix == ".png":
+            if (entry.name.startswith(".") and entry.name.endswith(outputs.TEMP_SUFFIX)) or (
+                folder.name == "layers" and entry.suffix == ".png"
+            ):
                 entry.unlink(missing_ok=True)
     for name in ("depth.tiff", "disparity.tiff", "regions.png", "all_in_focus.png", "scene.ply", "scene.glb"):
         (out_dir / name).unlink(missing_ok=True)
 
 
-WRITE_THREADS = 2   # PNG/TIFF deflate, sRGB tables and file writes release the GIL: files encode side by side
+WRITE_THREADS = 2  # PNG/TIFF deflate, sRGB tables and file writes release the GIL: files encode side by side
 
 
-def write_outputs(out_dir: Path, result: DepthResult, loaded: LoadedInput, labels_input: np.ndarray,
-                  camera: Pinhole | None, *, threads: int = WRITE_THREADS) -> list[str]:
+def write_outputs(
+    out_dir: Path,
+    result: DepthResult,
+    loaded: LoadedInput,
+    labels_input: np.ndarray,
+    camera: Pinhole | None,
+    *,
+    threads: int = WRITE_THREADS,
+) -> list[str]:
     """Write every output except result.json; returns their names relative to `out_dir`.
 
     `labels_input` is the region map at input resolution; `camera` is None in disparity-only mode.
@@ -295,7 +333,7 @@ def write_outputs(out_dir: Path, result: DepthResult, loaded: LoadedInput, label
     with_scene = camera is not None and result.depth_mm is not None
     layers = ordered_layers(result)
     boxes = region_boxes(result.labels) if with_scene else []
-    textured: set[int] = set()          # the first layer of a region textures its quad in the GLB
+    textured: set[int] = set()  # the first layer of a region textures its quad in the GLB
 
     with ThreadPoolExecutor(max_workers=max(1, threads), thread_name_prefix="mca-write") as pool:
         # Tasks run first in, first out, and a task only waits for ones submitted before it: no deadlock.
@@ -319,9 +357,12 @@ def write_outputs(out_dir: Path, result: DepthResult, loaded: LoadedInput, label
                 depth = np.asarray(result.depth_mm, dtype=np.float32)
             else:
                 depth = np.full(result.labels.shape, np.nan, dtype=np.float32)
-                written.append(outputs.write_tiff_float32(
-                    out_dir / "disparity.tiff", upsample_nearest(np.asarray(result.disparity_px, np.float32),
-                                                                 scale, size)))
+                written.append(
+                    outputs.write_tiff_float32(
+                        out_dir / "disparity.tiff",
+                        upsample_nearest(np.asarray(result.disparity_px, np.float32), scale, size),
+                    )
+                )
             written.append(outputs.write_tiff_float32(out_dir / "depth.tiff", upsample_nearest(depth, scale, size)))
             return written
 
@@ -332,17 +373,22 @@ def write_outputs(out_dir: Path, result: DepthResult, loaded: LoadedInput, label
             if box is None:
                 return path, None
             crop = rgba8[box]
-            return path, png if crop.shape == rgba8.shape else outputs.encode_png(crop)   # a full-frame box: same PNG
+            return path, png if crop.shape == rgba8.shape else outputs.encode_png(crop)  # a full-frame box: same PNG
 
         def write_scene_ply() -> Path:
             depth = np.asarray(result.depth_mm, dtype=np.float32)
             points, colours = scene_points(depth, srgb8_of(result.all_in_focus), scale, camera)
-            return outputs.write_ply(out_dir / "scene.ply", points, colours, comments=(
-                "mca-appliance scene: camera frame, x right, y down, z along the optical axis, millimetres",))
+            return outputs.write_ply(
+                out_dir / "scene.ply",
+                points,
+                colours,
+                comments=("mca-appliance scene: camera frame, x right, y down, z along the optical axis, millimetres",),
+            )
 
         # the longest tasks first, so that neither thread is left with a long one at the end
-        all_in_focus_task = pool.submit(lambda: outputs.write_png(out_dir / "all_in_focus.png",
-                                                                  srgb8_of(result.all_in_focus)))
+        all_in_focus_task = pool.submit(
+            lambda: outputs.write_png(out_dir / "all_in_focus.png", srgb8_of(result.all_in_focus))
+        )
         regions_task = pool.submit(outputs.write_png, out_dir / "regions.png", labels_input.astype(np.uint16))
         depth_task = pool.submit(write_depth)
         layer_tasks = []
@@ -374,30 +420,41 @@ def ordered_layers(result: DepthResult) -> list:
     return sorted(result.layers, key=lambda layer: (order.get(layer.region_id, len(order)), layer.disparity_px))
 
 
-def result_document(input_path: Path, profile: CameraProfile, result: DepthResult, loaded: LoadedInput,
-                    labels_input: np.ndarray, optics: Any, written: list[str],
-                    timings_s: dict[str, float]) -> dict[str, Any]:
+def result_document(
+    input_path: Path,
+    profile: CameraProfile,
+    result: DepthResult,
+    loaded: LoadedInput,
+    labels_input: np.ndarray,
+    optics: Any,
+    written: list[str],
+    timings_s: dict[str, float],
+) -> dict[str, Any]:
     """The content of result.json (see docs/outputs.md); region pixels are counted at input resolution."""
-    counts = np.bincount(labels_input.ravel().astype(np.intp),
-                         minlength=max([r.id for r in result.regions], default=0) + 1)
-    layer_names = {layer.region_id: f"layers/{i:02d}.png" for i, layer in reversed(list(enumerate(
-        ordered_layers(result))))}
+    counts = np.bincount(
+        labels_input.ravel().astype(np.intp), minlength=max([r.id for r in result.regions], default=0) + 1
+    )
+    layer_names = {
+        layer.region_id: f"layers/{i:02d}.png" for i, layer in reversed(list(enumerate(ordered_layers(result))))
+    }
     regions = []
     for region in sorted(result.regions, key=lambda r: r.id):
-        regions.append({
-            "id": int(region.id),
-            "pixels": int(counts[region.id]),
-            "order": int(region.order),
-            "occludes": [int(i) for i in region.occludes],
-            "disparity_px": _number(region.disparity_px),
-            "inter_image_depth_mm": _number(region.inter_image_depth_mm),
-            "inter_object_depth_mm": _number(region.inter_object_depth_mm),
-            "distance_mm": _number(region.distance_mm),
-            "slant": None if region.slant is None else {"plane": [float(v) for v in region.slant]},
-            "in_focus": bool(region.in_focus),
-            "confidence": _number(region.confidence),
-            "layer": layer_names.get(region.id),
-        })
+        regions.append(
+            {
+                "id": int(region.id),
+                "pixels": int(counts[region.id]),
+                "order": int(region.order),
+                "occludes": [int(i) for i in region.occludes],
+                "disparity_px": _number(region.disparity_px),
+                "inter_image_depth_mm": _number(region.inter_image_depth_mm),
+                "inter_object_depth_mm": _number(region.inter_object_depth_mm),
+                "distance_mm": _number(region.distance_mm),
+                "slant": None if region.slant is None else {"plane": [float(v) for v in region.slant]},
+                "in_focus": bool(region.in_focus),
+                "confidence": _number(region.confidence),
+                "layer": layer_names.get(region.id),
+            }
+        )
     mode = "distance" if optics is not None and result.depth_mm is not None else "disparity-only"
     return {
         "input": str(input_path),
@@ -407,20 +464,27 @@ def result_document(input_path: Path, profile: CameraProfile, result: DepthResul
         "timings_s": {k: round(float(v), 6) for k, v in timings_s.items()},
         "status": "done",
         "mode": mode,
-        "units": {"depth.tiff": "mm from the lens along the optical axis, NaN unknown"
-                  + (" (all NaN: no lens data)" if mode == "disparity-only" else ""),
-                  "disparity_px": "input-image pixels between the widest filter pair, + = farther than focus",
-                  "distance_mm": "mm from the lens", "inter_image_depth_mm": "mm, image side (eq. 2)",
-                  "inter_object_depth_mm": "mm from the focus plane, object side (eqs. 13/14)",
-                  "scene": "camera frame, x right, y down, z forward, mm"},
+        "units": {
+            "depth.tiff": "mm from the lens along the optical axis, NaN unknown"
+            + (" (all NaN: no lens data)" if mode == "disparity-only" else ""),
+            "disparity_px": "input-image pixels between the widest filter pair, + = farther than focus",
+            "distance_mm": "mm from the lens",
+            "inter_image_depth_mm": "mm, image side (eq. 2)",
+            "inter_object_depth_mm": "mm from the focus plane, object side (eqs. 13/14)",
+            "scene": "camera frame, x right, y down, z forward, mm",
+        },
         "input_size_px": list(loaded.input_size_px),
         "processing_size_px": [int(result.labels.shape[1]), int(result.labels.shape[0])],
         "pixel_scale": float(result.pixel_scale),
         "pixel_pitch_mm": None if optics is None else float(optics.pixel_pitch_mm),
-        "optics": None if optics is None else {
-            "focal_length_mm": float(optics.focal_length_mm), "sensor_distance_mm": float(optics.sensor_distance_mm),
+        "optics": None
+        if optics is None
+        else {
+            "focal_length_mm": float(optics.focal_length_mm),
+            "sensor_distance_mm": float(optics.sensor_distance_mm),
             "filter_centre_distance_mm": float(optics.filter_centre_distance_mm),
-            "focus_distance_mm": float(optics.focus_distance_mm)},
+            "focus_distance_mm": float(optics.focus_distance_mm),
+        },
         "layers_order": LAYER_ORDER,
         "capture": outputs.json_safe(loaded.metadata),
         "outputs": written + [RESULT_NAME],
@@ -489,10 +553,20 @@ def is_finished(out_dir: Path) -> bool:
     return (out_dir / RESULT_NAME).is_file()
 
 
-def process_file(input_path: str | Path, out_root: str | Path, profile: CameraProfile, *, force: bool = False,
-                 record_path: str | Path | None = None, out_name: str | None = None,
-                 pipeline: PipelineFunction | None = None, on_stage: StageCallback | None = None,
-                 shot_index: int = 0, recording_id: str | None = None, recorder: Any = None) -> FileOutcome:
+def process_file(
+    input_path: str | Path,
+    out_root: str | Path,
+    profile: CameraProfile,
+    *,
+    force: bool = False,
+    record_path: str | Path | None = None,
+    out_name: str | None = None,
+    pipeline: PipelineFunction | None = None,
+    on_stage: StageCallback | None = None,
+    shot_index: int = 0,
+    recording_id: str | None = None,
+    recorder: Any = None,
+) -> FileOutcome:
     """Process one photograph into `out_root/<stem>/` (or `out_root/<out_name>/`); never raises for a bad file.
 
     Skips a finished folder unless `force`. With `record_path`, records the shot with the rerun
@@ -506,11 +580,25 @@ def process_file(input_path: str | Path, out_root: str | Path, profile: CameraPr
     input_path = Path(input_path)
     out_dir = output_dir_for(input_path, Path(out_root), out_name)
     if is_finished(out_dir) and not force:
-        return FileOutcome(input_path, "skipped", out_dir, time.perf_counter() - started,
-                           reason="already finished (result.json exists); use --force to redo")
+        return FileOutcome(
+            input_path,
+            "skipped",
+            out_dir,
+            time.perf_counter() - started,
+            reason="already finished (result.json exists); use --force to redo",
+        )
     try:
-        regions = _process(input_path, out_dir, profile, record_path, pipeline, on_stage,
-                           shot_index=shot_index, recording_id=recording_id, live_recorder=recorder)
+        regions = _process(
+            input_path,
+            out_dir,
+            profile,
+            record_path,
+            pipeline,
+            on_stage,
+            shot_index=shot_index,
+            recording_id=recording_id,
+            live_recorder=recorder,
+        )
     except (KeyboardInterrupt, SystemExit):
         raise
     except Exception as exc:  # one bad file must never stop a batch: report it, keep going
@@ -521,9 +609,18 @@ def process_file(input_path: str | Path, out_root: str | Path, profile: CameraPr
     return FileOutcome(input_path, "done", out_dir, time.perf_counter() - started, regions=regions)
 
 
-def _process(input_path: Path, out_dir: Path, profile: CameraProfile, record_path: str | Path | None,
-             pipeline: PipelineFunction | None, on_stage: StageCallback | None, *, shot_index: int = 0,
-             recording_id: str | None = None, live_recorder: Any = None) -> int:
+def _process(
+    input_path: Path,
+    out_dir: Path,
+    profile: CameraProfile,
+    record_path: str | Path | None,
+    pipeline: PipelineFunction | None,
+    on_stage: StageCallback | None,
+    *,
+    shot_index: int = 0,
+    recording_id: str | None = None,
+    live_recorder: Any = None,
+) -> int:
     run = pipeline or _default_pipeline()
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -548,10 +645,9 @@ def _process(input_path: Path, out_dir: Path, profile: CameraProfile, record_pat
         extra: dict[str, Any] = {}
         if loaded.frame.half_resolution:
             offsets = bayer_channel_offsets_px(loaded.metadata.get("cfa_pattern"))
-            if offsets is not None:      # Bayer sample positions are not disparity
+            if offsets is not None:  # Bayer sample positions are not disparity
                 extra["channel_offsets_px"] = offsets
-        result = run(loaded.planes, profile.aperture, optics, pixel_scale=loaded.pixel_scale, recorder=timer,
-                     **extra)
+        result = run(loaded.planes, profile.aperture, optics, pixel_scale=loaded.pixel_scale, recorder=timer, **extra)
         timings.update(timer.timings_s)
         timings.update({k: float(v) for k, v in (result.timings_s or {}).items()})
         timings["pipeline"] = time.perf_counter() - t0
@@ -566,7 +662,7 @@ def _process(input_path: Path, out_dir: Path, profile: CameraProfile, record_pat
 
     t0 = time.perf_counter()
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / RESULT_NAME).unlink(missing_ok=True)      # unfinished from here until the new one lands
+    (out_dir / RESULT_NAME).unlink(missing_ok=True)  # unfinished from here until the new one lands
     _clean_folder(out_dir)
     labels_input = upsample_nearest(np.asarray(result.labels), result.pixel_scale, loaded.input_size_px)
     written = write_outputs(out_dir, result, loaded, labels_input, camera)
@@ -579,5 +675,15 @@ def _process(input_path: Path, out_dir: Path, profile: CameraProfile, record_pat
     return len(result.regions)
 
 
-__all__ = ["FileOutcome", "LoadedInput", "Pinhole", "SUPPORTED_SUFFIXES", "is_finished",
-           "output_dir_for", "process_file", "read_input", "scene_points", "upsample_nearest"]
+__all__ = [
+    "SUPPORTED_SUFFIXES",
+    "FileOutcome",
+    "LoadedInput",
+    "Pinhole",
+    "is_finished",
+    "output_dir_for",
+    "process_file",
+    "read_input",
+    "scene_points",
+    "upsample_nearest",
+]

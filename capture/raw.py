@@ -10,6 +10,7 @@ Every failure to read a file is a `RawReadError` that names the file, the
 reason and what to do; exceptions from LibRaw or the image decoders never
 escape.
 """
+
 from __future__ import annotations
 
 import math
@@ -27,12 +28,27 @@ import numpy as np
 from mca.capture.sensors import SensorSpec, known_models, photosite_pitch_mm, sensor_for
 
 RAW_EXTENSIONS = {
-    ".cr2": "cr2", ".dng": "dng", ".cr3": "cr3", ".crw": "crw", ".nef": "nef", ".arw": "arw",
-    ".raf": "raf", ".orf": "orf", ".rw2": "rw2", ".pef": "pef", ".srw": "srw",
+    ".cr2": "cr2",
+    ".dng": "dng",
+    ".cr3": "cr3",
+    ".crw": "crw",
+    ".nef": "nef",
+    ".arw": "arw",
+    ".raf": "raf",
+    ".orf": "orf",
+    ".rw2": "rw2",
+    ".pef": "pef",
+    ".srw": "srw",
 }
 IMAGE_EXTENSIONS = {
-    ".tif": "tiff", ".tiff": "tiff", ".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg",
-    ".ppm": "ppm", ".pgm": "ppm", ".pnm": "ppm",
+    ".tif": "tiff",
+    ".tiff": "tiff",
+    ".png": "png",
+    ".jpg": "jpeg",
+    ".jpeg": "jpeg",
+    ".ppm": "ppm",
+    ".pgm": "ppm",
+    ".pnm": "ppm",
 }
 
 
@@ -137,7 +153,9 @@ def require_known_body(frame: RawFrame, known: Iterable[str] | None = None) -> S
 def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
     """IEC 61966-2-1 sRGB decoding of values in [0, 1]: c/12.92 up to 0.04045, else ((c+0.055)/1.055)^2.4."""
     c = np.asarray(encoded, dtype=np.float32)
-    return np.where(c <= 0.04045, c / np.float32(12.92), np.power((c + np.float32(0.055)) / np.float32(1.055), np.float32(2.4))).astype(np.float32)
+    return np.where(
+        c <= 0.04045, c / np.float32(12.92), np.power((c + np.float32(0.055)) / np.float32(1.055), np.float32(2.4))
+    ).astype(np.float32)
 
 
 # --------------------------------------------------------------------------
@@ -146,24 +164,34 @@ def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
 
 
 def _open_binary(path: Path) -> Any:
-    return open(path, "rb")  # noqa: SIM115 - the single place files are opened (tests patch it)
+    return open(path, "rb")
 
 
 def _check_file(p: Path) -> bytes:
     """First bytes of the file, after checking it exists, is a file, is readable and is not empty."""
     if not p.exists():
-        raise RawReadError(p, "no such file", "Check the path; the file may not have been downloaded from the camera yet")
+        raise RawReadError(
+            p, "no such file", "Check the path; the file may not have been downloaded from the camera yet"
+        )
     if p.is_dir():
-        raise RawReadError(p, "is a folder, not an image file", "Pass one photograph (.CR2, .DNG, .tif, .png, .jpg, .ppm)")
+        raise RawReadError(
+            p, "is a folder, not an image file", "Pass one photograph (.CR2, .DNG, .tif, .png, .jpg, .ppm)"
+        )
     try:
         with _open_binary(p) as f:
             head = f.read(64)
     except PermissionError:
-        raise RawReadError(p, "cannot be read: permission denied", "Check the file's permissions (chmod u+r) or run as its owner") from None
+        raise RawReadError(
+            p, "cannot be read: permission denied", "Check the file's permissions (chmod u+r) or run as its owner"
+        ) from None
     except OSError as e:
         raise RawReadError(p, f"cannot be read: {e.strerror or e}", "Check the disk and copy the file again") from None
     if not head:
-        raise RawReadError(p, "is empty (0 bytes)", "The transfer from the camera probably failed; download or take the photograph again")
+        raise RawReadError(
+            p,
+            "is empty (0 bytes)",
+            "The transfer from the camera probably failed; download or take the photograph again",
+        )
     return head
 
 
@@ -193,7 +221,11 @@ def _detect_format(p: Path, head: bytes) -> str:
                 f"Use the raw file from the camera, or rename this one to .{'jpg' if magic == 'jpeg' else magic} to process it as an sRGB image",
             )
         if named == "cr2" and magic not in ("cr2", "tiff-structure"):
-            raise RawReadError(p, "is named .CR2 but does not start like a Canon CR2 (TIFF header)", "The file is damaged or is not a CR2; copy it from the camera again")
+            raise RawReadError(
+                p,
+                "is named .CR2 but does not start like a Canon CR2 (TIFF header)",
+                "The file is damaged or is not a CR2; copy it from the camera again",
+            )
         if named == "cr2" and magic == "tiff-structure":
             return "dng" if _is_dng(p) else "cr2"
         return named or "raw"
@@ -218,7 +250,21 @@ def _detect_format(p: Path, head: bytes) -> str:
 # TIFF/Exif metadata (pure parsing, bounded; malformed metadata is ignored)
 # --------------------------------------------------------------------------
 
-_TYPE_FORMAT = {1: "B", 2: "c", 3: "H", 4: "I", 5: "II", 6: "b", 7: "B", 8: "h", 9: "i", 10: "ii", 11: "f", 12: "d", 13: "I"}
+_TYPE_FORMAT = {
+    1: "B",
+    2: "c",
+    3: "H",
+    4: "I",
+    5: "II",
+    6: "b",
+    7: "B",
+    8: "h",
+    9: "i",
+    10: "ii",
+    11: "f",
+    12: "d",
+    13: "I",
+}
 _TYPE_SIZE = {1: 1, 2: 1, 3: 2, 4: 4, 5: 8, 6: 1, 7: 1, 8: 2, 9: 4, 10: 8, 11: 4, 12: 8, 13: 4}
 _MAX_ENTRIES = 1000
 _MAX_IFDS = 32
@@ -427,7 +473,11 @@ def _read_tiff_structure(p: Path, kind: str) -> _Tiff:
             with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as m:
                 tiff = _Tiff(m)  # values are decoded while parsing; nothing refers to `m` afterwards
     except (ValueError, struct.error) as e:
-        raise RawReadError(p, f"has a damaged {kind.upper()} structure ({e})", "The file is truncated or corrupt; copy it from the camera again") from None
+        raise RawReadError(
+            p,
+            f"has a damaged {kind.upper()} structure ({e})",
+            "The file is truncated or corrupt; copy it from the camera again",
+        ) from None
     except OSError as e:
         raise RawReadError(p, f"cannot be read: {e.strerror or e}", "Check the disk and copy the file again") from None
     if not tiff.ifds:
@@ -446,10 +496,20 @@ def _libraw_failure(p: Path, kind: str, e: Exception) -> RawReadError:
     detail = e.args[0] if e.args else ""
     e = detail.decode("utf-8", "replace") if isinstance(detail, bytes) else str(detail or name)
     if "Unsupported" in name:
-        return RawReadError(p, f"is not a raw format LibRaw can decode ({kind.upper()}; LibRaw: {e})", "Convert it to DNG or 16-bit linear TIFF, or check that it really is a camera raw")
+        return RawReadError(
+            p,
+            f"is not a raw format LibRaw can decode ({kind.upper()}; LibRaw: {e})",
+            "Convert it to DNG or 16-bit linear TIFF, or check that it really is a camera raw",
+        )
     if "IO" in name or "Data" in name:
-        return RawReadError(p, f"raw data could not be decoded ({name}: {e}); the file is probably truncated or damaged", "Copy the photograph from the camera again")
-    return RawReadError(p, f"LibRaw could not read it ({name}: {e})", "Copy the photograph from the camera again, or convert it to DNG")
+        return RawReadError(
+            p,
+            f"raw data could not be decoded ({name}: {e}); the file is probably truncated or damaged",
+            "Copy the photograph from the camera again",
+        )
+    return RawReadError(
+        p, f"LibRaw could not read it ({name}: {e})", "Copy the photograph from the camera again, or convert it to DNG"
+    )
 
 
 def _read_with_libraw(p: Path, kind: str) -> RawFrame:
@@ -463,7 +523,11 @@ def _read_with_libraw(p: Path, kind: str) -> RawFrame:
     except rawpy.LibRawError as e:
         raise _libraw_failure(p, kind, e) from None
     except (OSError, ValueError, MemoryError) as e:
-        raise RawReadError(p, f"could not be decoded as {kind.upper()} ({type(e).__name__}: {e})", "Copy the photograph from the camera again") from None
+        raise RawReadError(
+            p,
+            f"could not be decoded as {kind.upper()} ({type(e).__name__}: {e})",
+            "Copy the photograph from the camera again",
+        ) from None
 
 
 def _levels(raw: Any) -> tuple[np.ndarray, float]:
@@ -544,7 +608,11 @@ def _demosaic_raw(frame: RawFrame) -> np.ndarray:
     except rawpy.LibRawError as e:
         raise _libraw_failure(p, frame.source_format, e) from None
     except (OSError, ValueError, MemoryError) as e:
-        raise RawReadError(p, f"could not be demosaiced ({type(e).__name__}: {e})", "Check that the file is still in place and complete") from None
+        raise RawReadError(
+            p,
+            f"could not be demosaiced ({type(e).__name__}: {e})",
+            "Check that the file is still in place and complete",
+        ) from None
 
 
 # --------------------------------------------------------------------------
@@ -585,7 +653,11 @@ def _read_8bit_style(p: Path, kind: str) -> RawFrame:
         raise RawReadError(p, "is a truncated JPEG (no end-of-image marker)", "Copy or export the image again")
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None:
-        raise RawReadError(p, f"could not be decoded as {kind.upper()}; the file is damaged or truncated", "Export or copy the image again")
+        raise RawReadError(
+            p,
+            f"could not be decoded as {kind.upper()}; the file is damaged or truncated",
+            "Export or copy the image again",
+        )
     if img.ndim == 3 and img.shape[-1] >= 3:
         img = cv2.cvtColor(img[..., :3], cv2.COLOR_BGR2RGB)
     rgb = _to_rgb(img)
@@ -610,7 +682,9 @@ def _read_tiff(p: Path) -> RawFrame:
             if arr.ndim == 3 and page.planarconfig == tifffile.PLANARCONFIG.SEPARATE:
                 arr = np.moveaxis(arr, 0, -1)
     except (tifffile.TiffFileError, ValueError, OSError, MemoryError) as e:
-        raise RawReadError(p, f"could not be decoded as TIFF ({e})", "Export the image again as an uncompressed 16-bit RGB TIFF") from None
+        raise RawReadError(
+            p, f"could not be decoded as TIFF ({e})", "Export the image again as an uncompressed 16-bit RGB TIFF"
+        ) from None
     rgb = _to_rgb(arr)
     if rgb.dtype == np.uint16:
         linear = rgb.astype(np.float32) / np.float32(65535)  # 16-bit TIFF: linear
@@ -619,5 +693,7 @@ def _read_tiff(p: Path) -> RawFrame:
     elif rgb.dtype.kind == "f":
         linear = np.clip(np.nan_to_num(rgb.astype(np.float32)), 0.0, 1.0)
     else:
-        raise RawReadError(p, f"has {rgb.dtype} samples, which mca does not read", "Export it as 16-bit unsigned linear TIFF")
+        raise RawReadError(
+            p, f"has {rgb.dtype} samples, which mca does not read", "Export it as 16-bit unsigned linear TIFF"
+        )
     return _rgb_frame(p, "tiff", linear, _metadata(tiff))

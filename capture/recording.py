@@ -40,6 +40,7 @@ Entity paths (all per shot, on the `shot` sequence timeline and the `capture_tim
 Nothing here is imported by `processing`; rerun itself is imported only when a recorder is made.
 Usage analytics of rerun stay off: see `disable_rerun_analytics`.
 """
+
 from __future__ import annotations
 
 import json
@@ -49,9 +50,10 @@ import shutil
 import subprocess
 import sys
 import time
-from datetime import datetime, timezone
+from collections.abc import Mapping
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Mapping
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -71,7 +73,7 @@ _ANALYTICS_ENV_DONE = False
 _ANALYTICS_CONFIG_DONE = False
 
 
-def quiet_rerun_environment(environ: "os._Environ[str] | dict[str, str]" = os.environ) -> None:
+def quiet_rerun_environment(environ: os._Environ[str] | dict[str, str] = os.environ) -> None:
     """Set the environment so that rerun (SDK and viewer) reports nothing: call before `import rerun`.
 
     Removes `FORCE_RERUN_ANALYTICS` (which would override the opt-out) and sets
@@ -132,8 +134,14 @@ def disable_rerun_analytics() -> None:
     env = dict(os.environ)
     env["CI"] = "1"  # the opt-out command itself must not report
     try:
-        subprocess.run([exe, "analytics", "disable"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                       timeout=30, check=False)
+        subprocess.run(
+            [exe, "analytics", "disable"],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            timeout=30,
+            check=False,
+        )
     except (OSError, subprocess.SubprocessError):
         pass
 
@@ -164,20 +172,27 @@ def rerun_executable() -> str | None:
 
 # --- images for display ---------------------------------------------------------------------------------------------
 
-DISPLAY_MEGAPIXELS = 1.5      # 2D images are shown at about this size
-MAX_POINTS = 200_000          # point cloud subsampled to at most this many points
+DISPLAY_MEGAPIXELS = 1.5  # 2D images are shown at about this size
+MAX_POINTS = 200_000  # point cloud subsampled to at most this many points
 MULTI_PLANE_MEGAPIXELS = 1.0  # the frame the RGBA multi-plane images are placed in (each is cropped)
-PLANE_MESH_CELLS = 96         # accurate-depth plane meshes: grid cells across the width
+PLANE_MESH_CELLS = 96  # accurate-depth plane meshes: grid cells across the width
 JPEG_QUALITY = 85
 
 # Items of `processing.pipeline` stages that the recorder shows from the input frame or the DepthResult
 # anyway (at display size), so `record` skips them: logging them twice would only cost time and space.
-ALREADY_SHOWN = frozenset({
-    ("planes", "planes"),                                   # shot/raw/*, shot/input (log_input)
-    ("disparity", "disparity_px"), ("disparity", "confidence"),  # shot/disparity/per_pixel, .../confidence
-    ("sketch", "aligned"), ("sketch", "order"), ("sketch", "occludes"),  # shot/channels/after, occlusion_*
-    ("depth", "*"), ("all_in_focus", "*"), ("mpi", "*"),    # shot/segmentation, depth, all_in_focus, multi_plane
-})
+ALREADY_SHOWN = frozenset(
+    {
+        ("planes", "planes"),  # shot/raw/*, shot/input (log_input)
+        ("disparity", "disparity_px"),
+        ("disparity", "confidence"),  # shot/disparity/per_pixel, .../confidence
+        ("sketch", "aligned"),
+        ("sketch", "order"),
+        ("sketch", "occludes"),  # shot/channels/after, occlusion_*
+        ("depth", "*"),
+        ("all_in_focus", "*"),
+        ("mpi", "*"),  # shot/segmentation, depth, all_in_focus, multi_plane
+    }
+)
 
 
 def display_size(width_px: int, height_px: int, megapixels: float = DISPLAY_MEGAPIXELS) -> tuple[int, int]:
@@ -265,54 +280,66 @@ def _fmt(value: float | None, digits: int = 1) -> str:
     return "-" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
 
 
-def occlusion_order_markdown(result: "DepthResult") -> str:
+def occlusion_order_markdown(result: DepthResult) -> str:
     """The regions front to back as a markdown table (what the viewer shows as the occlusion order)."""
-    lines = ["| rank | region | pixels | distance mm | ΔD mm | Δd mm | disparity px | occludes | in focus "
-             "| confidence |",
-             "|---:|---:|---:|---:|---:|---:|---:|---|:---:|---:|"]
+    lines = [
+        "| rank | region | pixels | distance mm | ΔD mm | Δd mm | disparity px | occludes | in focus | confidence |",
+        "|---:|---:|---:|---:|---:|---:|---:|---|:---:|---:|",
+    ]
     for region in sorted(result.regions, key=lambda r: r.order):
         occludes = ", ".join(f"#{i}" for i in region.occludes) or "-"
         focus = "yes" if region.in_focus or region.id == result.focus_region else ""
-        lines.append(f"| {region.order} | #{region.id} | {region.pixels} | {_fmt(region.distance_mm)} | "
-                     f"{_fmt(region.inter_object_depth_mm)} | {_fmt(region.inter_image_depth_mm, 4)} | "
-                     f"{_fmt(region.disparity_px, 2)} | {occludes} | {focus} | {_fmt(region.confidence, 2)} |")
+        lines.append(
+            f"| {region.order} | #{region.id} | {region.pixels} | {_fmt(region.distance_mm)} | "
+            f"{_fmt(region.inter_object_depth_mm)} | {_fmt(region.inter_image_depth_mm, 4)} | "
+            f"{_fmt(region.disparity_px, 2)} | {occludes} | {focus} | {_fmt(region.confidence, 2)} |"
+        )
     if not result.regions:
         lines.append("| - | - | - | - | - | - | - | - | - | - |")
     return "\n".join(lines)
 
 
-def profile_markdown(profile: "CameraProfile | None") -> str:
+def profile_markdown(profile: CameraProfile | None) -> str:
     """The camera profile as a markdown document."""
     if profile is None:
         return "# Profile\n\nnone given"
     ap = profile.aperture
     first, second = ap.widest_pair
-    rows = [("name", profile.name), ("source", profile.source or "-"), ("camera", profile.model),
-            ("pixel pitch", f"{profile.pixel_pitch_mm} mm" if profile.pixel_pitch_mm else "unknown"),
-            ("image size", f"{profile.width_px or '?'} x {profile.height_px or '?'} px"),
-            ("filters (x, y) mm", f"red {ap.red_mm}, green {ap.green_mm}, blue {ap.blue_mm}; "
-                                  f"diameter {ap.filter_diameter_mm} mm"),
-            ("d_a", f"{ap.baseline_mm:.3f} mm ({first}-{second})")]
+    rows = [
+        ("name", profile.name),
+        ("source", profile.source or "-"),
+        ("camera", profile.model),
+        ("pixel pitch", f"{profile.pixel_pitch_mm} mm" if profile.pixel_pitch_mm else "unknown"),
+        ("image size", f"{profile.width_px or '?'} x {profile.height_px or '?'} px"),
+        (
+            "filters (x, y) mm",
+            f"red {ap.red_mm}, green {ap.green_mm}, blue {ap.blue_mm}; diameter {ap.filter_diameter_mm} mm",
+        ),
+        ("d_a", f"{ap.baseline_mm:.3f} mm ({first}-{second})"),
+    ]
     if profile.lens is not None:
-        rows += [("focal length f", f"{profile.lens.focal_length_mm} mm"),
-                 ("sensor distance d_ls", f"{profile.lens.sensor_distance_mm:.4f} mm"),
-                 ("focus distance", f"{profile.lens.focus_distance_mm:.2f} mm")]
+        rows += [
+            ("focal length f", f"{profile.lens.focal_length_mm} mm"),
+            ("sensor distance d_ls", f"{profile.lens.sensor_distance_mm:.4f} mm"),
+            ("focus distance", f"{profile.lens.focus_distance_mm:.2f} mm"),
+        ]
         if profile.pixel_pitch_mm:
-            rows.append(("focal length in px", f"{profile.lens.sensor_distance_mm / profile.pixel_pitch_mm:.1f} "
-                                               "(d_ls / pitch)"))
+            rows.append(
+                ("focal length in px", f"{profile.lens.sensor_distance_mm / profile.pixel_pitch_mm:.1f} (d_ls / pitch)")
+            )
     else:
         rows.append(("lens", "none: disparities in pixels only"))
     body = "\n".join(f"| {k} | {v} |" for k, v in rows)
     return f"# Camera profile `{profile.name}`\n\n| field | value |\n|---|---|\n{body}\n"
 
 
-def front_to_back(result: "DepthResult") -> list[Any]:
+def front_to_back(result: DepthResult) -> list[Any]:
     """The multi-plane images nearest first (by the region's rank, else by disparity: smaller is nearer)."""
     rank = {r.id: r.order for r in result.regions}
     return sorted(result.layers, key=lambda layer: (rank.get(layer.region_id, math.inf), layer.disparity_px))
 
 
-def layer_windows(result: "DepthResult", margin_px: int = 8) -> dict[int, tuple[slice, slice]]:
+def layer_windows(result: DepthResult, margin_px: int = 8) -> dict[int, tuple[slice, slice]]:
     """Bounding box (rows, cols) of each region's label, padded by `margin_px`: where its layer can be opaque."""
     from scipy import ndimage
 
@@ -322,8 +349,10 @@ def layer_windows(result: "DepthResult", margin_px: int = 8) -> dict[int, tuple[
     for index, box in enumerate(ndimage.find_objects(labels.astype(np.int32, copy=False))):
         if box is not None:
             rows, cols = box
-            windows[index + 1] = (slice(max(0, rows.start - margin_px), min(h, rows.stop + margin_px)),
-                                  slice(max(0, cols.start - margin_px), min(w, cols.stop + margin_px)))
+            windows[index + 1] = (
+                slice(max(0, rows.start - margin_px), min(h, rows.stop + margin_px)),
+                slice(max(0, cols.start - margin_px), min(w, cols.stop + margin_px)),
+            )
     return windows
 
 
@@ -361,9 +390,17 @@ def unpremultiplied_rgba8(rgba: np.ndarray) -> np.ndarray:
     return np.concatenate([to_srgb8(np.clip(colour, 0.0, 1.0)), np.round(alpha * 255).astype(np.uint8)], axis=2)
 
 
-def plane_mesh(rgba: np.ndarray, distance_m: float, focal_px: float, centre_px: tuple[float, float],
-               pixel_scale: float, cells_across: int = PLANE_MESH_CELLS, *, origin_px: tuple[int, int] = (0, 0),
-               full_width_px: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def plane_mesh(
+    rgba: np.ndarray,
+    distance_m: float,
+    focal_px: float,
+    centre_px: tuple[float, float],
+    pixel_scale: float,
+    cells_across: int = PLANE_MESH_CELLS,
+    *,
+    origin_px: tuple[int, int] = (0, 0),
+    full_width_px: int | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A coloured grid mesh over the opaque part of one multi-plane image, at `distance_m` in front of the camera.
 
     `rgba` is at processing resolution (`pixel_scale` input px per pixel), premultiplied, possibly a
@@ -381,19 +418,24 @@ def plane_mesh(rgba: np.ndarray, distance_m: float, focal_px: float, centre_px: 
     ys = (origin_px[1] + np.minimum(np.arange(gh + 1) * step, h)) * pixel_scale
     gx, gy = np.meshgrid(xs, ys)
     z = distance_m
-    vertices = np.stack([(gx - centre_px[0]) * z / focal_px, (gy - centre_px[1]) * z / focal_px,
-                         np.full_like(gx, z)], axis=-1).reshape(-1, 3).astype(np.float32)
+    vertices = (
+        np.stack([(gx - centre_px[0]) * z / focal_px, (gy - centre_px[1]) * z / focal_px, np.full_like(gx, z)], axis=-1)
+        .reshape(-1, 3)
+        .astype(np.float32)
+    )
     # corner colours: average of the neighbouring cells (edge-padded)
     rgb = unpremultiplied_rgba8(small)[..., :3]
     padded = np.pad(rgb.astype(np.float32), ((1, 1), (1, 1), (0, 0)), mode="edge")
     corner = (padded[:-1, :-1] + padded[1:, :-1] + padded[:-1, 1:] + padded[1:, 1:]) / 4.0
-    colours = np.concatenate([corner.reshape(-1, 3), np.full((corner.shape[0] * corner.shape[1], 1), 255.0)],
-                             axis=1).astype(np.uint8)
+    colours = np.concatenate(
+        [corner.reshape(-1, 3), np.full((corner.shape[0] * corner.shape[1], 1), 255.0)], axis=1
+    ).astype(np.uint8)
     cy, cx = np.nonzero(cell_on)
     top_left = cy * (gw + 1) + cx
     top_right, bottom_left, bottom_right = top_left + 1, top_left + gw + 1, top_left + gw + 2
-    triangles = np.concatenate([np.stack([top_left, bottom_left, top_right], axis=1),
-                                np.stack([top_right, bottom_left, bottom_right], axis=1)]).astype(np.uint32)
+    triangles = np.concatenate(
+        [np.stack([top_left, bottom_left, top_right], axis=1), np.stack([top_right, bottom_left, bottom_right], axis=1)]
+    ).astype(np.uint32)
     return vertices, triangles, colours
 
 
@@ -408,9 +450,18 @@ class RerunRecorder:
     streams to it; `viewer_url` then says where to point a browser.
     """
 
-    def __init__(self, recording_path: Path | None = None, *, application_id: str = "mca", serve: bool = False,
-                 bind: str = "127.0.0.1", grpc_port: int = 9876, web_port: int = 9090,
-                 display_megapixels: float = DISPLAY_MEGAPIXELS, recording_id: str | None = None) -> None:
+    def __init__(
+        self,
+        recording_path: Path | None = None,
+        *,
+        application_id: str = "mca",
+        serve: bool = False,
+        bind: str = "127.0.0.1",
+        grpc_port: int = 9876,
+        web_port: int = 9090,
+        display_megapixels: float = DISPLAY_MEGAPIXELS,
+        recording_id: str | None = None,
+    ) -> None:
         if recording_path is None and not serve:
             raise ValueError("RerunRecorder needs a recording path, serve=True, or both")
         disable_rerun_analytics()
@@ -451,8 +502,13 @@ class RerunRecorder:
         if exe is None:
             raise RuntimeError("--serve needs the `rerun` command of rerun-sdk; reinstall with `pip install rerun-sdk`")
         command = [exe, "--serve-web", "--bind", bind, "--port", str(grpc_port), "--web-viewer-port", str(web_port)]
-        self._server = subprocess.Popen(command, env=child_environment(), stdin=subprocess.DEVNULL,
-                                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        self._server = subprocess.Popen(
+            command,
+            env=child_environment(),
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
         host = "127.0.0.1" if bind in ("0.0.0.0", "::", "127.0.0.1") else bind
         grpc_url = f"rerun+http://{host}:{grpc_port}/proxy"
         _wait_for_port(host, grpc_port, self._server, timeout_s=10.0)
@@ -475,8 +531,10 @@ class RerunRecorder:
                 continue
             path = f"shot/stages/{stage}/{name}"
             if (stage, name) == ("sketch", "labels") and isinstance(value, np.ndarray) and value.ndim == 2:
-                self._stream.log("shot/segmentation/sketch", rr.SegmentationImage(
-                    np.ascontiguousarray(value.astype(np.uint16, copy=False)), opacity=0.6))
+                self._stream.log(
+                    "shot/segmentation/sketch",
+                    rr.SegmentationImage(np.ascontiguousarray(value.astype(np.uint16, copy=False)), opacity=0.6),
+                )
             elif isinstance(value, (bool, np.bool_)):
                 self._stream.log(path, rr.Scalars(float(value)))
             elif isinstance(value, (int, float, np.integer, np.floating)):
@@ -486,8 +544,9 @@ class RerunRecorder:
                 self._stream.log(path, rr.TextDocument(value))
             elif isinstance(value, Mapping) and len(value) <= 4096:
                 rows = "\n".join(f"| {k} | {_short(v)} |" for k, v in value.items())
-                self._stream.log(path, rr.TextDocument(f"| key | value |\n|---|---|\n{rows}\n",
-                                                       media_type=rr.MediaType.MARKDOWN))
+                self._stream.log(
+                    path, rr.TextDocument(f"| key | value |\n|---|---|\n{rows}\n", media_type=rr.MediaType.MARKDOWN)
+                )
             elif isinstance(value, np.ndarray) and value.ndim in (2, 3) and min(value.shape[:2]) > 1:
                 self._log_array_image(path, value)
             elif isinstance(value, np.ndarray) and value.size and value.ndim <= 1:
@@ -504,13 +563,14 @@ class RerunRecorder:
 
     # -- the application's calls -----------------------------------------------------------------------------------
 
-    def begin_shot(self, shot_index: int, name: str, capture_time: datetime | None,
-                   profile: "CameraProfile | None") -> None:
+    def begin_shot(
+        self, shot_index: int, name: str, capture_time: datetime | None, profile: CameraProfile | None
+    ) -> None:
         """Start a shot: sets the `shot` and `capture_time` timelines and logs the profile used."""
         rr = self._rr
         self._stream.set_time("shot", sequence=int(shot_index))
         if capture_time is not None:
-            stamp = capture_time if capture_time.tzinfo is not None else capture_time.replace(tzinfo=timezone.utc)
+            stamp = capture_time if capture_time.tzinfo is not None else capture_time.replace(tzinfo=UTC)
             self._stream.set_time("capture_time", timestamp=stamp)
         self._shot_name, self._shot_time, self._profile = name, capture_time, profile
         if not self._named:  # the viewer lists the recording under its first shot's name
@@ -548,11 +608,15 @@ class RerunRecorder:
         if meta is not None:
             rows = "\n".join(f"| {k} | {v} |" for k, v in _as_mapping(meta).items() if v is not None)
             path = getattr(frame, "path", None)
-            self._stream.log("shot/input_metadata", self._rr.TextDocument(
-                f"# Input `{path}`\n\n| field | value |\n|---|---|\n{rows}\n", media_type=self._rr.MediaType.MARKDOWN))
+            self._stream.log(
+                "shot/input_metadata",
+                self._rr.TextDocument(
+                    f"# Input `{path}`\n\n| field | value |\n|---|---|\n{rows}\n",
+                    media_type=self._rr.MediaType.MARKDOWN,
+                ),
+            )
 
-    def log_result(self, result: "DepthResult", profile: "CameraProfile | None",
-                   optics: "MCAOptics | None") -> None:
+    def log_result(self, result: DepthResult, profile: CameraProfile | None, optics: MCAOptics | None) -> None:
         """Log what the pipeline found: disparity, regions, occlusion order, depth, multi-plane images, the 3D scene."""
         rr = self._rr
         h, w = result.labels.shape
@@ -568,30 +632,53 @@ class RerunRecorder:
         self._stream.log("shot/all_in_focus", _jpeg(rr, to_srgb8(aif_small)))
         self._stream.log("shot/channels/after", _jpeg(rr, misalignment_overlay(aif_small)))
 
-        for path, array in (("shot/disparity/region_model", result.disparity_px),
-                            ("shot/disparity/per_pixel", result.raw_disparity_px),
-                            ("shot/disparity/confidence", result.confidence)):
+        for path, array in (
+            ("shot/disparity/region_model", result.disparity_px),
+            ("shot/disparity/per_pixel", result.raw_disparity_px),
+            ("shot/disparity/confidence", result.confidence),
+        ):
             self._stream.log(path, rr.Image(np.ascontiguousarray(resize(np.asarray(array, np.float32), display))))
 
         regions = sorted(result.regions, key=lambda r: r.order)
         infos = [rr.AnnotationInfo(id=0, label="none", color=(0, 0, 0, 0))]
         for region in regions:
-            where = f"{region.distance_mm:.0f} mm" if region.distance_mm is not None and math.isfinite(
-                region.distance_mm) else f"{region.disparity_px:+.2f} px"
-            infos.append(rr.AnnotationInfo(id=int(region.id), label=f"#{region.id} rank {region.order}: {where}",
-                                           color=_region_colour(region.id)))
+            where = (
+                f"{region.distance_mm:.0f} mm"
+                if region.distance_mm is not None and math.isfinite(region.distance_mm)
+                else f"{region.disparity_px:+.2f} px"
+            )
+            infos.append(
+                rr.AnnotationInfo(
+                    id=int(region.id),
+                    label=f"#{region.id} rank {region.order}: {where}",
+                    color=_region_colour(region.id),
+                )
+            )
         self._stream.log("shot/segmentation", rr.AnnotationContext(infos))
         labels = resize(np.ascontiguousarray(result.labels.astype(np.uint16, copy=False)), display, nearest=True)
         self._stream.log("shot/segmentation", rr.SegmentationImage(labels, opacity=0.6))
-        self._stream.log("shot/occlusion_order", rr.TextDocument(
-            f"# Occlusion order of `{self._shot_name}`, front to back\n\n{occlusion_order_markdown(result)}\n",
-            media_type=rr.MediaType.MARKDOWN))
+        self._stream.log(
+            "shot/occlusion_order",
+            rr.TextDocument(
+                f"# Occlusion order of `{self._shot_name}`, front to back\n\n{occlusion_order_markdown(result)}\n",
+                media_type=rr.MediaType.MARKDOWN,
+            ),
+        )
         if regions:
             node_ids = [str(r.id) for r in regions]
-            self._stream.log("shot/occlusion_graph", rr.GraphNodes(
-                node_ids, labels=[f"#{r.id} {_fmt(r.distance_mm, 0)} mm" if r.distance_mm is not None
-                                  else f"#{r.id} {r.disparity_px:+.1f} px" for r in regions],
-                colors=[_region_colour(r.id) for r in regions]))
+            self._stream.log(
+                "shot/occlusion_graph",
+                rr.GraphNodes(
+                    node_ids,
+                    labels=[
+                        f"#{r.id} {_fmt(r.distance_mm, 0)} mm"
+                        if r.distance_mm is not None
+                        else f"#{r.id} {r.disparity_px:+.1f} px"
+                        for r in regions
+                    ],
+                    colors=[_region_colour(r.id) for r in regions],
+                ),
+            )
             edges = [(str(r.id), str(other)) for r in regions for other in r.occludes]
             if edges:
                 self._stream.log("shot/occlusion_graph", rr.GraphEdges(edges, graph_type="directed"))
@@ -615,21 +702,39 @@ class RerunRecorder:
                 self.timing(stage, seconds)
         self._log_summary(result)
 
-    def _log_scene(self, result: "DepthResult", profile: "CameraProfile | None", optics: "MCAOptics | None",
-                   input_size: tuple[int, int], display: tuple[int, int],
-                   windows: dict[int, tuple[slice, slice]]) -> None:
+    def _log_scene(
+        self,
+        result: DepthResult,
+        profile: CameraProfile | None,
+        optics: MCAOptics | None,
+        input_size: tuple[int, int],
+        display: tuple[int, int],
+        windows: dict[int, tuple[slice, slice]],
+    ) -> None:
         """The 3D view: the camera (pinhole), the coloured point cloud and the accurate-depth planes, in metres."""
         rr = self._rr
         pitch = optics.pixel_pitch_mm if optics is not None else self._pitch_mm
-        sensor_distance = (optics.sensor_distance_mm if optics is not None
-                           else profile.lens.sensor_distance_mm if profile is not None and profile.lens else None)
+        sensor_distance = (
+            optics.sensor_distance_mm
+            if optics is not None
+            else profile.lens.sensor_distance_mm
+            if profile is not None and profile.lens
+            else None
+        )
         if not pitch or not sensor_distance:
             return
         focal_px = sensor_distance / pitch  # the pinhole of the MCA camera: d_ls over the pixel pitch
         zoom = display[0] / input_size[0]
-        self._stream.log("world/camera", rr.Pinhole(focal_length=focal_px * zoom, width=display[0], height=display[1],
-                                                    principal_point=(display[0] / 2, display[1] / 2),
-                                                    image_plane_distance=0.1))
+        self._stream.log(
+            "world/camera",
+            rr.Pinhole(
+                focal_length=focal_px * zoom,
+                width=display[0],
+                height=display[1],
+                principal_point=(display[0] / 2, display[1] / 2),
+                image_plane_distance=0.1,
+            ),
+        )
         if self._input_jpeg is not None:
             self._stream.log("world/camera/image", self._input_jpeg)
         centre = (input_size[0] / 2, input_size[1] / 2)
@@ -638,15 +743,17 @@ class RerunRecorder:
         if result.depth_mm is not None:
             h, w = result.depth_mm.shape
             step = max(1, int(math.ceil(math.sqrt(h * w / MAX_POINTS))))
-            depth = np.asarray(result.depth_mm[step // 2::step, step // 2::step], dtype=np.float32)
+            depth = np.asarray(result.depth_mm[step // 2 :: step, step // 2 :: step], dtype=np.float32)
             rows, cols = np.nonzero(np.isfinite(depth) & (depth > 0))
             z = depth[rows, cols] / 1000.0
             u = (cols * step + step // 2 + 0.5) * scale
             v = (rows * step + step // 2 + 0.5) * scale
             points = np.stack([(u - centre[0]) * z / focal_px, (v - centre[1]) * z / focal_px, z], axis=1)
-            colour = np.asarray(result.all_in_focus[step // 2::step, step // 2::step], dtype=np.float32)[rows, cols]
-            self._stream.log("world/points", rr.Points3D(points.astype(np.float32), colors=to_srgb8(colour),
-                                                         radii=rr.Radius.ui_points(2.0)))
+            colour = np.asarray(result.all_in_focus[step // 2 :: step, step // 2 :: step], dtype=np.float32)[rows, cols]
+            self._stream.log(
+                "world/points",
+                rr.Points3D(points.astype(np.float32), colors=to_srgb8(colour), radii=rr.Radius.ui_points(2.0)),
+            )
 
         region_by_id = {r.id: r for r in result.regions}
         for index, layer in enumerate(front_to_back(result)):
@@ -661,13 +768,21 @@ class RerunRecorder:
                 continue
             rows, cols = window
             vertices, triangles, colours = plane_mesh(
-                layer_rgba_crop(layer, window), distance_mm / 1000.0, focal_px, centre, scale,
-                origin_px=(cols.start, rows.start), full_width_px=result.labels.shape[1])
+                layer_rgba_crop(layer, window),
+                distance_mm / 1000.0,
+                focal_px,
+                centre,
+                scale,
+                origin_px=(cols.start, rows.start),
+                full_width_px=result.labels.shape[1],
+            )
             if len(triangles):
-                self._stream.log(f"world/planes/{index:02d}", rr.Mesh3D(
-                    vertex_positions=vertices, triangle_indices=triangles, vertex_colors=colours))
+                self._stream.log(
+                    f"world/planes/{index:02d}",
+                    rr.Mesh3D(vertex_positions=vertices, triangle_indices=triangles, vertex_colors=colours),
+                )
 
-    def _log_multi_plane(self, result: "DepthResult", windows: dict[int, tuple[slice, slice]]) -> None:
+    def _log_multi_plane(self, result: DepthResult, windows: dict[int, tuple[slice, slice]]) -> None:
         """Each multi-plane image cropped to where it is opaque, placed by a 2D translation in a common frame.
 
         The frame is the processing grid scaled to about `MULTI_PLANE_MEGAPIXELS`; cropping keeps a
@@ -689,13 +804,17 @@ class RerunRecorder:
             self._stream.log(path, rr.Transform3D(translation=[float(x0), float(y0), 0.0]))
             self._stream.log(path, rr.Image(unpremultiplied_rgba8(crop), color_model="RGBA"))
 
-    def _log_summary(self, result: "DepthResult") -> None:
+    def _log_summary(self, result: DepthResult) -> None:
         rr = self._rr
-        distances = [r.distance_mm for r in result.regions
-                     if r.distance_mm is not None and math.isfinite(r.distance_mm)]
-        lines = [f"# Shot `{self._shot_name}`", "",
-                 f"- capture time: {self._shot_time.isoformat() if self._shot_time else 'unknown'}",
-                 f"- regions: {len(result.regions)}"]
+        distances = [
+            r.distance_mm for r in result.regions if r.distance_mm is not None and math.isfinite(r.distance_mm)
+        ]
+        lines = [
+            f"# Shot `{self._shot_name}`",
+            "",
+            f"- capture time: {self._shot_time.isoformat() if self._shot_time else 'unknown'}",
+            f"- regions: {len(result.regions)}",
+        ]
         if distances:
             lines.append(f"- nearest object: {min(distances):.0f} mm, farthest: {max(distances):.0f} mm")
         if self._timings:
@@ -724,17 +843,24 @@ class RerunRecorder:
             value = value.astype(np.uint8) * 255
         if value.ndim == 2:
             if value.dtype.kind in "iu" and value.dtype.itemsize <= 2 and value.dtype != np.uint8:
-                self._stream.log(path, rr.Image(np.ascontiguousarray(resize(value.astype(np.uint16), size,
-                                                                            nearest=True))))
+                self._stream.log(
+                    path, rr.Image(np.ascontiguousarray(resize(value.astype(np.uint16), size, nearest=True)))
+                )
             else:
                 self._stream.log(path, rr.Image(np.ascontiguousarray(resize(value.astype(np.float32), size))))
         elif value.shape[2] == 3:
             self._stream.log(path, _jpeg(rr, to_srgb8(resize(value, size))))
         elif value.shape[2] == 4:
             small = resize(value, size)
-            rgba8 = np.concatenate([to_srgb8(small[..., :3]), to_srgb8(small[..., 3:4])
-                                    if small.dtype == np.uint8 else
-                                    np.round(np.clip(small[..., 3:4], 0, 1) * 255).astype(np.uint8)], axis=2)
+            rgba8 = np.concatenate(
+                [
+                    to_srgb8(small[..., :3]),
+                    to_srgb8(small[..., 3:4])
+                    if small.dtype == np.uint8
+                    else np.round(np.clip(small[..., 3:4], 0, 1) * 255).astype(np.uint8),
+                ],
+                axis=2,
+            )
             self._stream.log(path, rr.Image(rgba8, color_model="RGBA"))
 
     def flush(self) -> None:
@@ -756,21 +882,23 @@ class RerunRecorder:
                 self._server.kill()
             self._server = None
 
-    def __enter__(self) -> "RerunRecorder":
+    def __enter__(self) -> RerunRecorder:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
 
 
-def _wait_for_port(host: str, port: int, process: "subprocess.Popen[bytes]", timeout_s: float) -> None:
+def _wait_for_port(host: str, port: int, process: subprocess.Popen[bytes], timeout_s: float) -> None:
     import socket
 
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if process.poll() is not None:
-            raise RuntimeError(f"the rerun server exited (code {process.returncode}); is port {port} already in use? "
-                               "Choose another with --grpc-port / --web-port")
+            raise RuntimeError(
+                f"the rerun server exited (code {process.returncode}); is port {port} already in use? "
+                "Choose another with --grpc-port / --web-port"
+            )
         try:
             with socket.create_connection((host, port), timeout=0.2):
                 return
@@ -814,16 +942,23 @@ def default_blueprint() -> Any:
         column_shares=[2, 1.3, 1],
     )
     bottom = rrb.Tabs(
-        rrb.Grid(rrb.Spatial2DView(origin="shot/raw/red", name="Raw red"),
-                 rrb.Spatial2DView(origin="shot/raw/green", name="Raw green"),
-                 rrb.Spatial2DView(origin="shot/raw/blue", name="Raw blue"), name="Raw planes"),
-        rrb.Horizontal(rrb.Spatial2DView(origin="shot/channels/before", name="Misalignment before"),
-                       rrb.Spatial2DView(origin="shot/channels/after", name="After re-alignment"),
-                       name="Channels"),
-        rrb.Horizontal(rrb.Spatial2DView(origin="shot/disparity/region_model", name="Disparity, region model (px)"),
-                       rrb.Spatial2DView(origin="shot/disparity/per_pixel", name="Disparity, per pixel (px)"),
-                       rrb.Spatial2DView(origin="shot/disparity/confidence", name="Confidence"),
-                       name="Disparity"),
+        rrb.Grid(
+            rrb.Spatial2DView(origin="shot/raw/red", name="Raw red"),
+            rrb.Spatial2DView(origin="shot/raw/green", name="Raw green"),
+            rrb.Spatial2DView(origin="shot/raw/blue", name="Raw blue"),
+            name="Raw planes",
+        ),
+        rrb.Horizontal(
+            rrb.Spatial2DView(origin="shot/channels/before", name="Misalignment before"),
+            rrb.Spatial2DView(origin="shot/channels/after", name="After re-alignment"),
+            name="Channels",
+        ),
+        rrb.Horizontal(
+            rrb.Spatial2DView(origin="shot/disparity/region_model", name="Disparity, region model (px)"),
+            rrb.Spatial2DView(origin="shot/disparity/per_pixel", name="Disparity, per pixel (px)"),
+            rrb.Spatial2DView(origin="shot/disparity/confidence", name="Confidence"),
+            name="Disparity",
+        ),
         rrb.Spatial2DView(origin="shot/multi_plane", name="Multi-plane images (toggle layers)"),
         rrb.Spatial2DView(origin="shot/stages", name="Stages"),
     )
@@ -843,8 +978,13 @@ def merge_recordings(paths: list[Path], out_path: Path) -> None:
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_path.with_name(f".{out_path.name}.{os.getpid()}.tmp.rrd")
-    proc = subprocess.run([exe, "rrd", "merge", *[str(p) for p in paths], "-o", str(tmp)], env=child_environment(),
-                          capture_output=True, text=True, check=False)
+    proc = subprocess.run(
+        [exe, "rrd", "merge", *[str(p) for p in paths], "-o", str(tmp)],
+        env=child_environment(),
+        capture_output=True,
+        text=True,
+        check=False,
+    )
     if proc.returncode != 0:
         tmp.unlink(missing_ok=True)
         raise RuntimeError(f"rerun rrd merge failed for {', '.join(map(str, paths))}: {proc.stderr.strip()[-500:]}")

@@ -1,4 +1,5 @@
 """Photosite pitch of camera bodies, looked up by the Exif model name, for turning pixels into millimetres."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -4,6 +4,7 @@ The simulated camera and the calibration sweep call `render_scene` and `capture_
 `mca simulate` calls `write_capture`. Files are written atomically (temporary name in the
 destination folder, then `os.replace`).
 """
+
 from __future__ import annotations
 
 import io
@@ -27,11 +28,11 @@ class SimulatedCapture:
     """One simulated photograph and its ground truth (see `processing.simulate.Rendering`)."""
 
     scene: str
-    mosaic: np.ndarray            # (H, W) uint16 RGGB, black level included
-    planes_linear: np.ndarray     # (H/2, W/2, 3) float32, noise-free, (value - black) / (white - black)
+    mosaic: np.ndarray  # (H, W) uint16 RGGB, black level included
+    planes_linear: np.ndarray  # (H/2, W/2, 3) float32, noise-free, (value - black) / (white - black)
     truth: dict[str, Any]
-    depth_mm: np.ndarray          # (H, W) float32 distance of the front-most surface
-    labels: np.ndarray            # (H, W) uint16 object ids, 0 = background
+    depth_mm: np.ndarray  # (H, W) float32 distance of the front-most surface
+    labels: np.ndarray  # (H, W) uint16 object ids, 0 = background
     sensor: SensorModel
     optics: SimulationOptics
 
@@ -45,9 +46,16 @@ def size_scale(size: str | float) -> float:
     return float(size)
 
 
-def render_scene(scene: str | Scene, profile: CameraProfile, *, size: str | float = "full", seed: int | None = 0,
-                 optics: SimulationOptics | None = None, sensor: SensorModel | None = None,
-                 cosited: bool = False) -> SimulatedCapture:
+def render_scene(
+    scene: str | Scene,
+    profile: CameraProfile,
+    *,
+    size: str | float = "full",
+    seed: int | None = 0,
+    optics: SimulationOptics | None = None,
+    sensor: SensorModel | None = None,
+    cosited: bool = False,
+) -> SimulatedCapture:
     """Render a named paper scene ("paper-a".."paper-g") or a `Scene` as the profile's camera would take it.
 
     `optics` overrides the profile's nominal optics (e.g. `SimulationOptics.from_profile(p, s).perturbed(...)`
@@ -58,12 +66,22 @@ def render_scene(scene: str | Scene, profile: CameraProfile, *, size: str | floa
     if isinstance(scene, str):
         scene = paper_scene(scene, used_optics.focus_distance_mm)
     rendering = render(scene, used_optics, used_sensor, seed=seed, cosited=cosited)
-    truth = {"scene": rendering.truth["scene"], "profile": profile.name,
-             "scale": used_optics.height_px / profile.height_px if profile.height_px else None}
+    truth = {
+        "scene": rendering.truth["scene"],
+        "profile": profile.name,
+        "scale": used_optics.height_px / profile.height_px if profile.height_px else None,
+    }
     truth.update({k: v for k, v in rendering.truth.items() if k not in truth})
-    return SimulatedCapture(scene=scene.name, mosaic=rendering.mosaic, planes_linear=rendering.planes_linear,
-                            truth=truth, depth_mm=rendering.depth_mm, labels=rendering.labels,
-                            sensor=used_sensor, optics=used_optics)
+    return SimulatedCapture(
+        scene=scene.name,
+        mosaic=rendering.mosaic,
+        planes_linear=rendering.planes_linear,
+        truth=truth,
+        depth_mm=rendering.depth_mm,
+        labels=rendering.labels,
+        sensor=used_sensor,
+        optics=used_optics,
+    )
 
 
 def capture_cr2_bytes(capture: SimulatedCapture, profile: CameraProfile) -> bytes:
@@ -78,8 +96,12 @@ def capture_cr2_bytes(capture: SimulatedCapture, profile: CameraProfile) -> byte
         focal_length_mm=capture.optics.focal_length_mm,
         focus_distance_m=capture.optics.focus_distance_mm / 1000.0,
     )
-    return cr2_bytes(capture.mosaic, black_level=capture.sensor.black_level,
-                     white_level=capture.sensor.white_level, metadata=metadata)
+    return cr2_bytes(
+        capture.mosaic,
+        black_level=capture.sensor.black_level,
+        white_level=capture.sensor.white_level,
+        metadata=metadata,
+    )
 
 
 def truth_json(truth: dict[str, Any]) -> str:
@@ -103,8 +125,12 @@ def write_capture(capture: SimulatedCapture, profile: CameraProfile, out_dir: st
     paths["cr2"] = write_bytes_atomic(out / f"{name}.CR2", capture_cr2_bytes(capture, profile))
     paths["truth"] = write_bytes_atomic(out / f"{name}.truth.json", truth_json(capture.truth).encode("utf-8"))
     buffer = io.BytesIO()
-    tifffile.imwrite(buffer, capture.depth_mm.astype(np.float32), compression="zlib",
-                     metadata={"unit": "mm", "what": "distance from the lens of the front-most surface"})
+    tifffile.imwrite(
+        buffer,
+        capture.depth_mm.astype(np.float32),
+        compression="zlib",
+        metadata={"unit": "mm", "what": "distance from the lens of the front-most surface"},
+    )
     paths["depth"] = write_bytes_atomic(out / f"{name}.depth.tiff", buffer.getvalue())
     ok, png = cv2.imencode(".png", capture.labels.astype(np.uint16), [cv2.IMWRITE_PNG_COMPRESSION, 3])
     if not ok:

@@ -5,6 +5,7 @@ camera's ObjectInfo, fsynced and renamed; `catalog.sqlite` records it. File
 names from the camera are untrusted and sanitised. After a disconnect the
 session reconnects and fetches what the catalog says is missing.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -103,8 +104,9 @@ class SimRig:
     backend: Any
 
 
-def make_sim_rig(frame_source: Callable[[int], Any] | None = None, *, faults: Any = None,
-                 pace_bytes_per_s: float | None = None) -> SimRig:
+def make_sim_rig(
+    frame_source: Callable[[int], Any] | None = None, *, faults: Any = None, pace_bytes_per_s: float | None = None
+) -> SimRig:
     from mca.devices.sim_eos70d.responder import SimEos70D
     from mca.devices.sim_eos70d.usb_backend import SimUsbBackend
 
@@ -130,17 +132,21 @@ def camera_factory(spec: str, *, rig: SimRig | None = None, timeout_s: float = 5
     if spec.startswith("ptpip:"):
         from mca.devices.ptp.transport_ptpip import PtpIpTransport
 
-        host, _, port = spec[len("ptpip:"):].partition(":")
+        host, _, port = spec[len("ptpip:") :].partition(":")
         return lambda: Camera.open(PtpIpTransport(host or "127.0.0.1", int(port or 15740), timeout_s=timeout_s))
     if spec.startswith("usb:"):
         return lambda: Camera.open(open_usb(spec, timeout_s=timeout_s))
     if spec == "auto":
+
         def open_auto() -> Camera:
             cams = find_cameras()
             if not cams:
-                raise TransportError("no PTP camera on USB: connect and switch on the EOS 70D, "
-                                     "or use `--camera sim` for the simulated one")
+                raise TransportError(
+                    "no PTP camera on USB: connect and switch on the EOS 70D, "
+                    "or use `--camera sim` for the simulated one"
+                )
             return Camera.open(UsbTransport(cams[0], timeout_s=timeout_s))
+
         return open_auto
     raise ValueError(f"unknown camera {spec!r}: use auto, sim, usb:BUS:ADDR or ptpip:HOST:PORT")
 
@@ -168,10 +174,19 @@ class _HashingWriter:
 class TetherSession:
     """Drives one camera for a capture run; survives busy answers, stalls, broken containers and disconnects."""
 
-    def __init__(self, factory: CameraFactory, out_dir: Path, *, delete_after_verify: bool = False,
-                 process: bool = False, profile: str | None = None, record: Path | None = None,
-                 log: Callable[[str], None] = lambda msg: None, progress: Callable[[int, int], None] | None = None,
-                 capture_target: str | None = "card") -> None:
+    def __init__(
+        self,
+        factory: CameraFactory,
+        out_dir: Path,
+        *,
+        delete_after_verify: bool = False,
+        process: bool = False,
+        profile: str | None = None,
+        record: Path | None = None,
+        log: Callable[[str], None] = lambda msg: None,
+        progress: Callable[[int, int], None] | None = None,
+        capture_target: str | None = "card",
+    ) -> None:
         self.factory = factory
         self.out_dir = Path(out_dir)
         self.out_dir.mkdir(parents=True, exist_ok=True)
@@ -202,15 +217,17 @@ class TetherSession:
             except (TransportError, ProtocolError, PtpError) as exc:
                 last = exc
                 self._drop_camera()
-                time.sleep(min(2.0, 0.05 * 2 ** attempt))
-        raise TransportError(f"could not reconnect to the camera after {RECONNECT_ATTEMPTS} attempts: {last}; "
-                             "check the cable and that the camera is on")
+                time.sleep(min(2.0, 0.05 * 2**attempt))
+        raise TransportError(
+            f"could not reconnect to the camera after {RECONNECT_ATTEMPTS} attempts: {last}; "
+            "check the cable and that the camera is on"
+        )
 
     def _drop_camera(self) -> None:
         if self.camera is not None:
             try:
                 self.camera.transport.close()
-            except Exception:  # noqa: BLE001 - already gone
+            except Exception:
                 pass
         self.camera = None
 
@@ -235,7 +252,7 @@ class TetherSession:
         if self.camera is not None:
             try:
                 self.camera.close()
-            except Exception:  # noqa: BLE001 - closing a vanished camera
+            except Exception:
                 pass
             self.camera = None
         self.catalog.close()
@@ -250,7 +267,7 @@ class TetherSession:
             except DeviceBusyError as exc:
                 last = exc
                 self.log(f"{what}: camera busy, retrying")
-                time.sleep(min(1.0, 0.02 * 2 ** attempt))
+                time.sleep(min(1.0, 0.02 * 2**attempt))
             except DeviceDisconnected as exc:
                 last = exc
                 self.log(f"{what}: {exc}; reconnecting")
@@ -313,7 +330,9 @@ class TetherSession:
             handle = self._find_on_card(cam, obj)
             expected = cam.object_info(handle).compressed_size_bytes
         if not 0 < expected <= MAX_OBJECT_BYTES:
-            raise ValueError(f"{cam.name} reports {expected} bytes for {obj.filename!r}; refusing (limit {MAX_OBJECT_BYTES})")
+            raise ValueError(
+                f"{cam.name} reports {expected} bytes for {obj.filename!r}; refusing (limit {MAX_OBJECT_BYTES})"
+            )
         name = sanitize_filename(obj.filename, self.catalog.file_names() | set(os.listdir(self.out_dir)))
         final = _safe_target(self.out_dir, name)
         tmp = _safe_target(self.out_dir, f".{name}.part")
@@ -324,7 +343,9 @@ class TetherSession:
             os.fsync(fh.fileno())
         if writer.size_bytes != expected or tmp.stat().st_size != expected:
             tmp.unlink(missing_ok=True)
-            raise ProtocolError(f"{cam.name} sent {writer.size_bytes} bytes for {obj.filename!r}, ObjectInfo says {expected}")
+            raise ProtocolError(
+                f"{cam.name} sent {writer.size_bytes} bytes for {obj.filename!r}, ObjectInfo says {expected}"
+            )
         os.replace(tmp, final)
         dir_fd = os.open(self.out_dir, os.O_RDONLY)
         try:
@@ -335,9 +356,8 @@ class TetherSession:
         self.catalog.mark_downloaded(shot_id, name, expected, digest)
         if obj.in_ram:
             cam.transfer_complete(handle)
-        elif self.delete_after_verify:
-            if _sha256_file(final) == digest:
-                cam.delete(handle)
+        elif self.delete_after_verify and _sha256_file(final) == digest:
+            cam.delete(handle)
         return final
 
     def _find_on_card(self, cam: Camera, obj: CapturedObject) -> int:
@@ -376,9 +396,10 @@ class TetherSession:
         try:
             if self._profile_obj is None:
                 self._profile_obj = load_profile(self.profile or DEFAULT_PROFILE)
-            outcome = pipeline_app.process_file(path, self.out_dir, self._profile_obj, recorder=self._live_recorder(),
-                                                shot_index=shot_id)
-        except Exception as exc:  # noqa: BLE001 - a processing failure must not lose the shot
+            outcome = pipeline_app.process_file(
+                path, self.out_dir, self._profile_obj, recorder=self._live_recorder(), shot_index=shot_id
+            )
+        except Exception as exc:
             outcome = None
             reason = f"processing failed: {exc}"
         else:

@@ -6,6 +6,7 @@ it in a thread behind a pty, so pyserial opens a real tty exactly as it opens
 `/dev/ttyUSB0`. Replies follow GRBL 1.1: `ok`, `error:N`, `ALARM:N`,
 `<Idle|MPos:...|FS:...>`, the banner `Grbl 1.1h ['$' for help]`.
 """
+
 from __future__ import annotations
 
 import collections
@@ -15,18 +16,48 @@ import select
 import threading
 import time
 import tty
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 from mca.devices.rail import grbl_protocol as gp
 
 # A configured bench rail: homing on, soft limits on, 300 mm of travel.
 DEFAULT_SETTINGS: dict[int, float] = {
-    0: 10, 1: 25, 2: 0, 3: 0, 4: 0, 5: 0, 6: 0, 10: 1, 11: 0.010, 12: 0.002, 13: 0,
-    20: 1, 21: 0, 22: 1, 23: 0, 24: 25.0, 25: 500.0, 26: 250, 27: 1.0, 30: 1000, 31: 0, 32: 0,
-    100: 80.0, 101: 250.0, 102: 250.0, 110: 3000.0, 111: 500.0, 112: 500.0,
-    120: 100.0, 121: 10.0, 122: 10.0, 130: 300.0, 131: 200.0, 132: 200.0,
+    0: 10,
+    1: 25,
+    2: 0,
+    3: 0,
+    4: 0,
+    5: 0,
+    6: 0,
+    10: 1,
+    11: 0.010,
+    12: 0.002,
+    13: 0,
+    20: 1,
+    21: 0,
+    22: 1,
+    23: 0,
+    24: 25.0,
+    25: 500.0,
+    26: 250,
+    27: 1.0,
+    30: 1000,
+    31: 0,
+    32: 0,
+    100: 80.0,
+    101: 250.0,
+    102: 250.0,
+    110: 3000.0,
+    111: 500.0,
+    112: 500.0,
+    120: 100.0,
+    121: 10.0,
+    122: 10.0,
+    130: 300.0,
+    131: 200.0,
+    132: 200.0,
 }
 PLANNER_BLOCKS = 15  # GRBL 1.1 on an ATmega328p
 _WORD_RE = re.compile(r"([A-Z])([-+]?(?:\d+\.?\d*|\.\d+))?")
@@ -47,8 +78,14 @@ class SimGrbl:
     at power-up; homing travels that far at the seek rate `$25`.
     """
 
-    def __init__(self, settings: dict[int, float] | None = None, *, speedup: float = 1.0,
-                 clock: Callable[[], float] = time.monotonic, carriage_from_switch_mm: float = 50.0) -> None:
+    def __init__(
+        self,
+        settings: dict[int, float] | None = None,
+        *,
+        speedup: float = 1.0,
+        clock: Callable[[], float] = time.monotonic,
+        carriage_from_switch_mm: float = 50.0,
+    ) -> None:
         if not speedup > 0:
             raise ValueError(f"speedup must be positive, got {speedup}")
         self.settings = dict(DEFAULT_SETTINGS if settings is None else settings)
@@ -151,8 +188,7 @@ class SimGrbl:
         return text.encode("ascii")
 
     def _busy(self, now: float) -> bool:
-        return (self._critical or self.state == "Home" or self._waiting_sync
-                or len(self._queue) >= PLANNER_BLOCKS)
+        return self._critical or self.state == "Home" or self._waiting_sync or len(self._queue) >= PLANNER_BLOCKS
 
     def _home_machine_x(self) -> float:
         pulloff = self.settings.get(27, 1.0)
@@ -388,8 +424,9 @@ class SimGrblPty:
     `/dev/serial/by-id/...` link, so `unplug()`/`replug()` keep one port name.
     """
 
-    def __init__(self, sim: SimGrbl | None = None, *, speedup: float = 1.0,
-                 link_path: str | Path | None = None) -> None:
+    def __init__(
+        self, sim: SimGrbl | None = None, *, speedup: float = 1.0, link_path: str | Path | None = None
+    ) -> None:
         self.sim = sim if sim is not None else SimGrbl(speedup=speedup)
         self._link = Path(link_path) if link_path is not None else None
         self._lock = threading.Lock()
@@ -403,7 +440,7 @@ class SimGrblPty:
     def port(self) -> str:
         return str(self._link) if self._link is not None else self._tty_name
 
-    def start(self) -> "SimGrblPty":
+    def start(self) -> SimGrblPty:
         """Open a pty, power the controller up (banner) and serve it."""
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)
@@ -435,7 +472,7 @@ class SimGrblPty:
 
     unplug = stop
 
-    def replug(self) -> "SimGrblPty":
+    def replug(self) -> SimGrblPty:
         """Plug back in: a fresh pty (same `link_path`) and a controller that has just powered up."""
         self.stop()
         self.muted = False
@@ -454,7 +491,7 @@ class SimGrblPty:
         with self._lock:
             os.write(self._master, self.sim.trigger_alarm(code))
 
-    def __enter__(self) -> "SimGrblPty":
+    def __enter__(self) -> SimGrblPty:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:

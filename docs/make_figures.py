@@ -6,6 +6,7 @@ The photographs themselves stay out of the repository (their licence is non-comm
 figures show only what the appliance computed from them: the per-region disparity in false
 colour (widest filter pair, pixels; blue = near, red = far) with the region boundaries in white.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -40,8 +41,16 @@ def colour_bar(width: int) -> np.ndarray:
     strip[:18] = bar
     for value in range(int(lo), int(hi) + 1, 4):
         x = int((value - lo) / (hi - lo) * (width - 1))
-        cv2.putText(strip, f"{value:+d} px", (min(max(0, x - 14), width - 44), 34), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1,
-                    cv2.LINE_AA)
+        cv2.putText(
+            strip,
+            f"{value:+d} px",
+            (min(max(0, x - 14), width - 44), 34),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.4,
+            (255, 255, 255),
+            1,
+            cv2.LINE_AA,
+        )
     return strip
 
 
@@ -70,7 +79,9 @@ def main() -> None:
             result = json.loads((folder / "result.json").read_text())
             title = f"{name}: {len(result['regions'])} regions, {sum(result['timings_s'].get(k, 0) for k in ('pipeline',)):.1f} s"
             tile = render(disparity, labels, title)
-            tiles.append(cv2.resize(tile, (480, int(480 * tile.shape[0] / tile.shape[1])), interpolation=cv2.INTER_AREA))
+            tiles.append(
+                cv2.resize(tile, (480, int(480 * tile.shape[0] / tile.shape[1])), interpolation=cv2.INTER_AREA)
+            )
             print(title)
     height = max(t.shape[0] for t in tiles)
     tiles = [np.pad(t, ((0, height - t.shape[0]), (0, 0), (0, 0))) for t in tiles]

@@ -5,6 +5,7 @@ top-level folders, mapped into this package by pyproject.toml:
 `capture/` -> `mca.capture` (the application), `processing/` -> `mca.processing` (pure
 algorithms), `devices/` -> `mca.devices` (hardware and its simulated twins).
 """
+
 from __future__ import annotations
 
 from importlib.metadata import PackageNotFoundError, version

@@ -14,11 +14,12 @@ depends on A and B alone, so fixing the offset (default 0: the Bayer offset is r
 exactly) and fitting d_a and d_ls gives exact depths; a real offset is then absorbed into
 d_ls (a focus shift of offset / (B / u_F²) mm). Pure: arrays and numbers in and out.
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Sequence
 
 import numpy as np
 
@@ -44,10 +45,10 @@ class CalibrationFitError(ValueError):
 class TargetDisparity:
     """The global red-blue disparity of a fronto-parallel target, in mosaic pixels of the photograph."""
 
-    disparity_px: float          # along the baseline (red minus blue shift, Bayer offset removed)
-    across_px: float             # perpendicular to the baseline: should be ~0; a check of the set-up
+    disparity_px: float  # along the baseline (red minus blue shift, Bayer offset removed)
+    across_px: float  # perpendicular to the baseline: should be ~0; a check of the set-up
     shift_px: tuple[float, float]  # measured red-from-blue shift (dx, dy), mosaic px, Bayer offset included
-    correlation: float           # normalised correlation of red and the registered blue (1 = identical)
+    correlation: float  # normalised correlation of red and the registered blue (1 = identical)
     iterations: int
 
 
@@ -72,10 +73,18 @@ def _central_window(shape: tuple[int, int], crop_fraction: float, max_side_px: i
     return slice(y0, y0 + ch), slice(x0, x0 + cw)
 
 
-def plane_shift_px(reference: np.ndarray, moving: np.ndarray, *, crop_fraction: float = 0.6,
-                   max_side_px: int = 768, max_iterations: int = 30, tolerance_px: float = 1e-4,
-                   smoothing_px: float = 1.0, search_centre_px: tuple[float, float] = (0.0, 0.0),
-                   search_half_size_px: tuple[float, float] = (8.0, 8.0)) -> tuple[float, float, float, int]:
+def plane_shift_px(
+    reference: np.ndarray,
+    moving: np.ndarray,
+    *,
+    crop_fraction: float = 0.6,
+    max_side_px: int = 768,
+    max_iterations: int = 30,
+    tolerance_px: float = 1e-4,
+    smoothing_px: float = 1.0,
+    search_centre_px: tuple[float, float] = (0.0, 0.0),
+    search_half_size_px: tuple[float, float] = (8.0, 8.0),
+) -> tuple[float, float, float, int]:
     """Sub-pixel translation (dx, dy) with reference(x) ≈ a · moving(x - (dx, dy)) + c over a central window.
 
     The phase-correlation peak inside the box `search_centre_px` ± `search_half_size_px` (dx, dy) gives the
@@ -119,8 +128,9 @@ def plane_shift_px(reference: np.ndarray, moving: np.ndarray, *, crop_fraction: 
     return dx, dy, correlation, iterations
 
 
-def _correlation_peak(reference: np.ndarray, moving: np.ndarray, centre: tuple[float, float],
-                      half_size: tuple[float, float]) -> tuple[float, float]:
+def _correlation_peak(
+    reference: np.ndarray, moving: np.ndarray, centre: tuple[float, float], half_size: tuple[float, float]
+) -> tuple[float, float]:
     """Integer (dx, dy) of the highest phase-correlation peak within centre ± half_size."""
     window = np.outer(np.hanning(reference.shape[0]), np.hanning(reference.shape[1]))
     spectrum = np.fft.fft2(reference * window) * np.conj(np.fft.fft2(moving * window))
@@ -134,9 +144,15 @@ def _correlation_peak(reference: np.ndarray, moving: np.ndarray, centre: tuple[f
     return float(np.broadcast_to(sx, surface.shape)[index]), float(np.broadcast_to(sy, surface.shape)[index])
 
 
-def target_disparity_px(red_plane: np.ndarray, blue_plane: np.ndarray, direction: tuple[float, float], *,
-                        bayer_offset_px: tuple[float, float] = BAYER_RED_FROM_BLUE_PX,
-                        crop_fraction: float = 0.6, max_disparity_px: float = 24.0) -> TargetDisparity:
+def target_disparity_px(
+    red_plane: np.ndarray,
+    blue_plane: np.ndarray,
+    direction: tuple[float, float],
+    *,
+    bayer_offset_px: tuple[float, float] = BAYER_RED_FROM_BLUE_PX,
+    crop_fraction: float = 0.6,
+    max_disparity_px: float = 24.0,
+) -> TargetDisparity:
     """Disparity (mosaic px) of a fronto-parallel textured target filling the centre of the frame.
 
     `red_plane`, `blue_plane`: the half-resolution Bayer planes (R at site (0, 0), B at (1, 1)).
@@ -148,12 +164,18 @@ def target_disparity_px(red_plane: np.ndarray, blue_plane: np.ndarray, direction
     ux, uy = direction
     centre = (bayer_offset_px[0] / 2.0, bayer_offset_px[1] / 2.0)
     half = (abs(ux) * max_disparity_px / 2.0 + 2.0, abs(uy) * max_disparity_px / 2.0 + 2.0)
-    dx, dy, correlation, iterations = plane_shift_px(red_plane, blue_plane, crop_fraction=crop_fraction,
-                                                     search_centre_px=centre, search_half_size_px=half)
+    dx, dy, correlation, iterations = plane_shift_px(
+        red_plane, blue_plane, crop_fraction=crop_fraction, search_centre_px=centre, search_half_size_px=half
+    )
     sx, sy = 2.0 * dx, 2.0 * dy
     ex, ey = sx - bayer_offset_px[0], sy - bayer_offset_px[1]
-    return TargetDisparity(disparity_px=ex * ux + ey * uy, across_px=-ex * uy + ey * ux, shift_px=(sx, sy),
-                           correlation=correlation, iterations=iterations)
+    return TargetDisparity(
+        disparity_px=ex * ux + ey * uy,
+        across_px=-ex * uy + ey * ux,
+        shift_px=(sx, sy),
+        correlation=correlation,
+        iterations=iterations,
+    )
 
 
 # --- the lens model and its fit -------------------------------------------------------------------------------
@@ -164,10 +186,10 @@ class LensModel:
     """The thin-lens MCA model of one lens: disparities in pixels of pitch `pixel_pitch_mm` (eqs. 6, 11)."""
 
     focal_length_mm: float
-    sensor_distance_mm: float            # the paper's d_ls
-    filter_centre_distance_mm: float     # the paper's d_a, red to blue (widest pair)
+    sensor_distance_mm: float  # the paper's d_ls
+    filter_centre_distance_mm: float  # the paper's d_a, red to blue (widest pair)
     pixel_pitch_mm: float
-    disparity_offset_px: float = 0.0     # added to every disparity (lateral colour, filter wedge, ...)
+    disparity_offset_px: float = 0.0  # added to every disparity (lateral colour, filter wedge, ...)
 
     @property
     def focus_distance_mm(self) -> float:
@@ -177,16 +199,24 @@ class LensModel:
 
     def disparity_px(self, distance_mm: np.ndarray | float) -> np.ndarray | float:
         """d_a (d_ls - v) / v / pitch + offset (eq. 11 with Δd = d_ls - v)."""
-        return thin_lens_disparity_mm(distance_mm, self.sensor_distance_mm, self.focal_length_mm,
-                                      self.filter_centre_distance_mm) / self.pixel_pitch_mm + self.disparity_offset_px
+        return (
+            thin_lens_disparity_mm(
+                distance_mm, self.sensor_distance_mm, self.focal_length_mm, self.filter_centre_distance_mm
+            )
+            / self.pixel_pitch_mm
+            + self.disparity_offset_px
+        )
 
     def distance_mm(self, disparity_px: np.ndarray | float) -> np.ndarray | float:
         """The inverse: distance from the lens of a measured disparity (offset removed first)."""
-        return thin_lens_distance_mm((np.asarray(disparity_px, dtype=float) - self.disparity_offset_px)
-                                     * self.pixel_pitch_mm, self.sensor_distance_mm, self.focal_length_mm,
-                                     self.filter_centre_distance_mm)
+        return thin_lens_distance_mm(
+            (np.asarray(disparity_px, dtype=float) - self.disparity_offset_px) * self.pixel_pitch_mm,
+            self.sensor_distance_mm,
+            self.focal_length_mm,
+            self.filter_centre_distance_mm,
+        )
 
-    def with_values(self, values: dict[str, float]) -> "LensModel":
+    def with_values(self, values: dict[str, float]) -> LensModel:
         return replace(self, **values)
 
 
@@ -221,8 +251,9 @@ def _jacobian(model: LensModel, distances_mm: np.ndarray, parameters: Sequence[s
     return np.stack(columns, axis=1)
 
 
-def identifiability(model: LensModel, distances_mm: Sequence[float] | np.ndarray,
-                    parameters: Sequence[str] = PARAMETERS) -> Identifiability:
+def identifiability(
+    model: LensModel, distances_mm: Sequence[float] | np.ndarray, parameters: Sequence[str] = PARAMETERS
+) -> Identifiability:
     """How well a sweep over `distances_mm` determines `parameters` (rank and conditioning of the Jacobian)."""
     jac = _jacobian(model, np.asarray(distances_mm, dtype=float), parameters)
     jac = jac / np.linalg.norm(jac, axis=0, keepdims=True)
@@ -237,26 +268,30 @@ class CalibrationFit:
     fitted: LensModel
     nominal: LensModel
     free: tuple[str, ...]
-    sigma: dict[str, float]                  # one standard deviation of each free parameter (and focus distance)
-    correlation: np.ndarray                  # between the free parameters
+    sigma: dict[str, float]  # one standard deviation of each free parameter (and focus distance)
+    correlation: np.ndarray  # between the free parameters
     distances_mm: np.ndarray
     disparities_px: np.ndarray
-    residuals_px: np.ndarray                 # measured - fitted disparity
-    depth_errors_mm: np.ndarray              # distance from the fitted model at the measured disparity - known
+    residuals_px: np.ndarray  # measured - fitted disparity
+    depth_errors_mm: np.ndarray  # distance from the fitted model at the measured disparity - known
     three_parameter: Identifiability = field(repr=False)
 
     @property
     def residual_rms_px(self) -> float:
-        return float(np.sqrt(np.mean(self.residuals_px ** 2)))
+        return float(np.sqrt(np.mean(self.residuals_px**2)))
 
     @property
     def max_depth_error_mm(self) -> float:
         return float(np.max(np.abs(self.depth_errors_mm)))
 
 
-def fit_lens(distances_mm: Sequence[float] | np.ndarray, disparities_px: Sequence[float] | np.ndarray,
-             nominal: LensModel, *, free: Sequence[str] = ("filter_centre_distance_mm", "sensor_distance_mm")
-             ) -> CalibrationFit:
+def fit_lens(
+    distances_mm: Sequence[float] | np.ndarray,
+    disparities_px: Sequence[float] | np.ndarray,
+    nominal: LensModel,
+    *,
+    free: Sequence[str] = ("filter_centre_distance_mm", "sensor_distance_mm"),
+) -> CalibrationFit:
     """Least-squares fit of the `free` parameters of `nominal` to measured (distance, disparity) pairs.
 
     Parameters not in `free` keep their values in `nominal` (give a known offset there). Raises
@@ -274,8 +309,10 @@ def fit_lens(distances_mm: Sequence[float] | np.ndarray, disparities_px: Sequenc
     if u.shape != measured.shape or u.ndim != 1:
         raise CalibrationFitError("distances and disparities must be 1-D and of equal length")
     if u.size < len(free) + 2:
-        raise CalibrationFitError(f"{u.size} points cannot fit {len(free)} parameters and estimate the noise; "
-                                  f"shoot at least {len(free) + 2} positions")
+        raise CalibrationFitError(
+            f"{u.size} points cannot fit {len(free)} parameters and estimate the noise; "
+            f"shoot at least {len(free) + 2} positions"
+        )
     if np.any(u <= nominal.focal_length_mm):
         raise CalibrationFitError("every target distance must exceed the focal length")
     check = identifiability(nominal, u, free)
@@ -283,7 +320,8 @@ def fit_lens(distances_mm: Sequence[float] | np.ndarray, disparities_px: Sequenc
         names = ", ".join(SHORT_NAMES[n] for n in free)
         raise CalibrationFitError(
             f"{names} are not identifiable from disparities against distance (condition number "
-            f"{check.condition_number:.3g}): with f fixed the model is A - B/u; fix one of them")
+            f"{check.condition_number:.3g}): with f fixed the model is A - B/u; fix one of them"
+        )
 
     def model_at(x: np.ndarray) -> LensModel:
         values = {}
@@ -292,13 +330,19 @@ def fit_lens(distances_mm: Sequence[float] | np.ndarray, disparities_px: Sequenc
         return nominal.with_values(values)
 
     x0 = np.array([nominal.disparity_offset_px if n == "disparity_offset_px" else 1.0 for n in free])
-    result = least_squares(lambda x: np.asarray(model_at(x).disparity_px(u), dtype=float) - measured, x0,
-                           method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14)
+    result = least_squares(
+        lambda x: np.asarray(model_at(x).disparity_px(u), dtype=float) - measured,
+        x0,
+        method="lm",
+        xtol=1e-14,
+        ftol=1e-14,
+        gtol=1e-14,
+    )
     fitted = model_at(result.x)
     residuals = measured - np.asarray(fitted.disparity_px(u), dtype=float)
     dof = max(u.size - len(free), 1)
-    noise_var = float(np.sum(residuals ** 2) / dof)
-    jac = _jacobian(fitted, u, free)   # per relative change (offset: per px)
+    noise_var = float(np.sum(residuals**2) / dof)
+    jac = _jacobian(fitted, u, free)  # per relative change (offset: per px)
     cov_rel = np.linalg.inv(jac.T @ jac) * noise_var
     sigma: dict[str, float] = {}
     for i, name in enumerate(free):
@@ -311,22 +355,34 @@ def fit_lens(distances_mm: Sequence[float] | np.ndarray, disparities_px: Sequenc
     std = np.sqrt(np.clip(np.diag(cov_rel), 1e-300, None))
     correlation = cov_rel / np.outer(std, std)
     depth_errors = np.asarray(fitted.distance_mm(measured), dtype=float) - u
-    return CalibrationFit(fitted=fitted, nominal=nominal, free=free, sigma=sigma, correlation=correlation,
-                          distances_mm=u, disparities_px=measured, residuals_px=residuals,
-                          depth_errors_mm=depth_errors, three_parameter=identifiability(fitted, u, PARAMETERS))
+    return CalibrationFit(
+        fitted=fitted,
+        nominal=nominal,
+        free=free,
+        sigma=sigma,
+        correlation=correlation,
+        distances_mm=u,
+        disparities_px=measured,
+        residuals_px=residuals,
+        depth_errors_mm=depth_errors,
+        three_parameter=identifiability(fitted, u, PARAMETERS),
+    )
 
 
 def scaled_aperture(aperture: FilterAperture, filter_centre_distance_mm: float) -> FilterAperture:
     """The aperture with every filter centre scaled about the axis so that the widest pair is d_a apart."""
     factor = filter_centre_distance_mm / aperture.baseline_mm
-    return replace(aperture,
-                   red_mm=(aperture.red_mm[0] * factor, aperture.red_mm[1] * factor),
-                   green_mm=(aperture.green_mm[0] * factor, aperture.green_mm[1] * factor),
-                   blue_mm=(aperture.blue_mm[0] * factor, aperture.blue_mm[1] * factor))
+    return replace(
+        aperture,
+        red_mm=(aperture.red_mm[0] * factor, aperture.red_mm[1] * factor),
+        green_mm=(aperture.green_mm[0] * factor, aperture.green_mm[1] * factor),
+        blue_mm=(aperture.blue_mm[0] * factor, aperture.blue_mm[1] * factor),
+    )
 
 
-def plot_fit(fit: CalibrationFit, *, width_px: int = 960, height_px: int = 720,
-             truth: LensModel | None = None) -> np.ndarray:
+def plot_fit(
+    fit: CalibrationFit, *, width_px: int = 960, height_px: int = 720, truth: LensModel | None = None
+) -> np.ndarray:
     """A BGR uint8 image: measured disparity (dots) against distance, fitted curve (blue), nominal (grey),
     optional truth (green, dashed), and below it the residuals in px."""
     import cv2
@@ -359,8 +415,9 @@ def plot_fit(fit: CalibrationFit, *, width_px: int = 960, height_px: int = 720,
         x, _ = px(tick, 0.0, 0.0, 1.0, 0, 1)
         cv2.line(img, (int(x), bottom_res), (int(x), bottom_res + 5), (0, 0, 0), 1)
         cv2.putText(img, f"{tick:.0f}", (int(x) - 22, bottom_res + 22), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(img, "distance from the lens (mm)", (width_px // 2 - 120, height_px - 10), font, 0.5, (0, 0, 0), 1,
-                cv2.LINE_AA)
+    cv2.putText(
+        img, "distance from the lens (mm)", (width_px // 2 - 120, height_px - 10), font, 0.5, (0, 0, 0), 1, cv2.LINE_AA
+    )
     for tick in np.linspace(y_lo, y_hi, 6):
         _, y = px(grid[0], tick, y_lo, y_hi, top, bottom_main)
         cv2.putText(img, f"{tick:.1f}", (left - 70, int(y) + 5), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
@@ -374,8 +431,10 @@ def plot_fit(fit: CalibrationFit, *, width_px: int = 960, height_px: int = 720,
         cv2.circle(img, (int(round(x)), int(round(y))), 4, (0, 0, 220), -1, cv2.LINE_AA)
     for i, (_, colour, label) in enumerate(curves + [(None, (0, 0, 220), "measured")]):
         cv2.putText(img, label, (left + 15, top + 22 + 20 * i), font, 0.5, colour, 1, cv2.LINE_AA)
-    text = (f"d_a {fit.fitted.filter_centre_distance_mm:.4f} mm  d_ls {fit.fitted.sensor_distance_mm:.4f} mm  "
-            f"focus {fit.fitted.focus_distance_mm:.1f} mm  rms {fit.residual_rms_px:.4f} px")
+    text = (
+        f"d_a {fit.fitted.filter_centre_distance_mm:.4f} mm  d_ls {fit.fitted.sensor_distance_mm:.4f} mm  "
+        f"focus {fit.fitted.focus_distance_mm:.1f} mm  rms {fit.residual_rms_px:.4f} px"
+    )
     cv2.putText(img, text, (left + 15, bottom_main - 12), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
     r_max = max(float(np.abs(fit.residuals_px).max()) * 1.3, 1e-3)
     _, zero = px(grid[0], 0.0, -r_max, r_max, top_res, bottom_res)
@@ -383,6 +442,5 @@ def plot_fit(fit: CalibrationFit, *, width_px: int = 960, height_px: int = 720,
     xs, ys = px(u, fit.residuals_px, -r_max, r_max, top_res, bottom_res)
     for x, y in zip(xs, ys):
         cv2.circle(img, (int(round(x)), int(round(y))), 3, (0, 0, 220), -1, cv2.LINE_AA)
-    cv2.putText(img, f"residual (px), +-{r_max:.3f}", (left + 5, top_res + 16), font, 0.45, (0, 0, 0), 1,
-                cv2.LINE_AA)
+    cv2.putText(img, f"residual (px), +-{r_max:.3f}", (left + 5, top_res + 16), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
     return img

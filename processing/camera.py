@@ -1,9 +1,11 @@
 """Camera profiles: the validated optical parameters of an MCA camera (sensor, lens, filter aperture)."""
+
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any
 
 CHANNELS = ("red", "green", "blue")
 
@@ -105,8 +107,9 @@ def _section(data: Mapping[str, Any], name: str, source: str, required: bool = T
     return value
 
 
-def _number(table: Mapping[str, Any], key: str, field: str, source: str, *, required: bool = True,
-            positive: bool = True) -> float | None:
+def _number(
+    table: Mapping[str, Any], key: str, field: str, source: str, *, required: bool = True, positive: bool = True
+) -> float | None:
     if key not in table:
         if required:
             raise ProfileError(field, "missing; it is required", source)
@@ -123,8 +126,11 @@ def _point(table: Mapping[str, Any], key: str, field: str, source: str) -> tuple
     if key not in table:
         raise ProfileError(field, "missing; give the filter centre as [x_mm, y_mm]", source)
     value = table[key]
-    if (not isinstance(value, (list, tuple)) or len(value) != 2
-            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)):
+    if (
+        not isinstance(value, (list, tuple))
+        or len(value) != 2
+        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)
+    ):
         raise ProfileError(field, f"must be [x_mm, y_mm] (two numbers), got {value!r}", source)
     return (float(value[0]), float(value[1]))
 
@@ -138,14 +144,19 @@ def _crosstalk(table: Mapping[str, Any], source: str) -> tuple[tuple[float, floa
         raise ProfileError(field, "must be a 3x3 matrix [[..],[..],[..]] (sensor channel <- filter)", source)
     rows = []
     for row in value:
-        if (not isinstance(row, (list, tuple)) or len(row) != 3
-                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in row)):
+        if (
+            not isinstance(row, (list, tuple))
+            or len(row) != 3
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in row)
+        ):
             raise ProfileError(field, f"each row must hold three numbers, got {row!r}", source)
         rows.append(tuple(float(v) for v in row))
     a = rows
-    det = (a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1])
-           - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0])
-           + a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0]))
+    det = (
+        a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1])
+        - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0])
+        + a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0])
+    )
     if abs(det) < 1e-6:
         raise ProfileError(field, "is singular: the channels could not be separated", source)
     return tuple(rows)  # type: ignore[return-value]
@@ -166,8 +177,9 @@ def profile_from_mapping(data: Mapping[str, Any], source: str = "<profile>") -> 
         raise ProfileError("camera.model", "missing or empty", source)
     pitch = _number(camera, "pixel_pitch_mm", "camera.pixel_pitch_mm", source, required=False)
     if pitch is not None and pitch > 0.1:
-        raise ProfileError("camera.pixel_pitch_mm", f"{pitch} mm is not a photosite pitch (give mm, e.g. 0.004109)",
-                           source)
+        raise ProfileError(
+            "camera.pixel_pitch_mm", f"{pitch} mm is not a photosite pitch (give mm, e.g. 0.004109)", source
+        )
     size = []
     for key in ("width_px", "height_px"):
         value = camera.get(key)
@@ -184,22 +196,28 @@ def profile_from_mapping(data: Mapping[str, Any], source: str = "<profile>") -> 
         has_focus = "focus_distance_mm" in lens_table
         has_sensor = "sensor_distance_mm" in lens_table
         if has_focus == has_sensor:
-            raise ProfileError("lens.focus_distance_mm",
-                               "give exactly one of focus_distance_mm and sensor_distance_mm", source)
+            raise ProfileError(
+                "lens.focus_distance_mm", "give exactly one of focus_distance_mm and sensor_distance_mm", source
+            )
         if has_focus:
             focus = _number(lens_table, "focus_distance_mm", "lens.focus_distance_mm", source)
             assert focus is not None
             if focus <= focal:
-                raise ProfileError("lens.focus_distance_mm",
-                                   f"{focus} mm is not beyond the focal length {focal} mm: nothing would be in focus",
-                                   source)
+                raise ProfileError(
+                    "lens.focus_distance_mm",
+                    f"{focus} mm is not beyond the focal length {focal} mm: nothing would be in focus",
+                    source,
+                )
             sensor = focal * focus / (focus - focal)
         else:
             sensor = _number(lens_table, "sensor_distance_mm", "lens.sensor_distance_mm", source)
             assert sensor is not None
             if sensor <= focal:
-                raise ProfileError("lens.sensor_distance_mm",
-                                   f"{sensor} mm must exceed the focal length {focal} mm for a real image", source)
+                raise ProfileError(
+                    "lens.sensor_distance_mm",
+                    f"{sensor} mm must exceed the focal length {focal} mm for a real image",
+                    source,
+                )
         lens = Lens(focal_length_mm=focal, sensor_distance_mm=sensor, f_number=f_number)
 
     ap = _section(data, "aperture", source)
@@ -214,17 +232,31 @@ def profile_from_mapping(data: Mapping[str, Any], source: str = "<profile>") -> 
         for channel, (x, y) in centres.items():
             reach = math.hypot(x, y) + filter_diameter / 2
             if reach > diameter / 2 + 1e-9:
-                raise ProfileError(f"aperture.{channel}",
-                                   f"filter reaches {reach:.2f} mm from the axis, outside the aperture of radius "
-                                   f"{diameter / 2:.2f} mm", source)
+                raise ProfileError(
+                    f"aperture.{channel}",
+                    f"filter reaches {reach:.2f} mm from the axis, outside the aperture of radius "
+                    f"{diameter / 2:.2f} mm",
+                    source,
+                )
     for first, second in (("red", "green"), ("red", "blue"), ("green", "blue")):
         (ax, ay), (bx, by) = centres[first], centres[second]
         if math.hypot(ax - bx, ay - by) < filter_diameter - 1e-9:
             raise ProfileError(f"aperture.{second}", f"filter overlaps the {first} filter", source)
     aperture = FilterAperture(
         filter_diameter_mm=filter_diameter,
-        red_mm=centres["red"], green_mm=centres["green"], blue_mm=centres["blue"],
-        diameter_mm=diameter, crosstalk=_crosstalk(ap, source),
+        red_mm=centres["red"],
+        green_mm=centres["green"],
+        blue_mm=centres["blue"],
+        diameter_mm=diameter,
+        crosstalk=_crosstalk(ap, source),
     )
-    return CameraProfile(name=name.strip(), model=model.strip(), aperture=aperture, pixel_pitch_mm=pitch,
-                         width_px=size[0], height_px=size[1], lens=lens, source=source)
+    return CameraProfile(
+        name=name.strip(),
+        model=model.strip(),
+        aperture=aperture,
+        pixel_pitch_mm=pitch,
+        width_px=size[0],
+        height_px=size[1],
+        lens=lens,
+        source=source,
+    )

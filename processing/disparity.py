@@ -15,6 +15,7 @@ planes are first turned into band-pass images (difference of Gaussians, zero loc
 the correlations need no mean subtraction), which keeps the measure on edges and texture and makes sub-pixel
 interpolation of the cost nearly unbiased.
 """
+
 from __future__ import annotations
 
 import os
@@ -36,31 +37,52 @@ def channel_shifts(aperture: FilterAperture) -> np.ndarray:
 def sample_shifted(plane: np.ndarray, dx: float, dy: float, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
     """`plane` sampled at (x + dx, y + dy) for every pixel (x, y); borders replicate."""
     matrix = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy]], dtype=np.float64)
-    return cv2.warpAffine(plane, matrix, (plane.shape[1], plane.shape[0]),
-                          flags=interpolation | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
+    return cv2.warpAffine(
+        plane,
+        matrix,
+        (plane.shape[1], plane.shape[0]),
+        flags=interpolation | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
 
 
-def sample_shifted_rows(plane: np.ndarray, dx: float, dy: float, row0: int, row1: int,
-                        interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
+def sample_shifted_rows(
+    plane: np.ndarray, dx: float, dy: float, row0: int, row1: int, interpolation: int = cv2.INTER_LINEAR
+) -> np.ndarray:
     """Rows row0..row1 of `sample_shifted(plane, dx, dy)` (borders replicate at the plane's own edges)."""
     matrix = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy + row0]], dtype=np.float64)
-    return cv2.warpAffine(plane, matrix, (plane.shape[1], row1 - row0),
-                          flags=interpolation | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
+    return cv2.warpAffine(
+        plane,
+        matrix,
+        (plane.shape[1], row1 - row0),
+        flags=interpolation | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
 
 
-def shift_channels(planes: np.ndarray, aperture: FilterAperture, disparity_px: float,
-                   interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
+def shift_channels(
+    planes: np.ndarray, aperture: FilterAperture, disparity_px: float, interpolation: int = cv2.INTER_LINEAR
+) -> np.ndarray:
     """Channels re-aligned for one uniform disparity: channel c sampled at x + d * s_c (removes its fringes)."""
     shifts = channel_shifts(aperture)
     out = np.empty_like(planes, dtype=np.float32)
     for c in range(3):
-        out[..., c] = sample_shifted(np.ascontiguousarray(planes[..., c], dtype=np.float32),
-                                     disparity_px * shifts[c, 0], disparity_px * shifts[c, 1], interpolation)
+        out[..., c] = sample_shifted(
+            np.ascontiguousarray(planes[..., c], dtype=np.float32),
+            disparity_px * shifts[c, 0],
+            disparity_px * shifts[c, 1],
+            interpolation,
+        )
     return out
 
 
-def warp_channels(planes: np.ndarray, aperture: FilterAperture, disparity_px: np.ndarray,
-                  interpolation: int = cv2.INTER_LINEAR, origin_xy: tuple[int, int] = (0, 0)) -> np.ndarray:
+def warp_channels(
+    planes: np.ndarray,
+    aperture: FilterAperture,
+    disparity_px: np.ndarray,
+    interpolation: int = cv2.INTER_LINEAR,
+    origin_xy: tuple[int, int] = (0, 0),
+) -> np.ndarray:
     """Channels re-aligned for a per-pixel disparity map (same grid as `planes`, or a crop at `origin_xy`)."""
     shifts = channel_shifts(aperture)
     height, width = disparity_px.shape
@@ -99,7 +121,7 @@ def parallel_map(function, items) -> list:
     """`function` over `items` on the shared worker threads (OpenCV and numpy release the GIL in their loops)."""
     items = list(items)
     if len(items) <= 1 or _WORKERS <= 1 or threading.current_thread().name.startswith("mca-processing"):
-        return [function(item) for item in items]          # (from a worker itself: serially, no deadlock)
+        return [function(item) for item in items]  # (from a worker itself: serially, no deadlock)
     return list(_pool().map(function, items))
 
 
@@ -138,21 +160,21 @@ def band_pass(planes: np.ndarray, sigma_fine_px: float = 0.8, sigma_coarse_px: f
 class DisparityParams:
     """Parameters of the per-pixel search, in pixels of the planes searched."""
 
-    window_px: int = 9              # side of the square matching window
-    step_px: float = 0.5            # spacing of the candidate disparities
-    noise_floor: float = 2e-3       # std of band-pass signal treated as flat (regularises the correlations)
-    aggregation_px: int = 0         # extra box aggregation of the cost (0 = none)
-    subpixel: bool = True           # parabola fit around the winner (False: integer winner-takes-all)
+    window_px: int = 9  # side of the square matching window
+    step_px: float = 0.5  # spacing of the candidate disparities
+    noise_floor: float = 2e-3  # std of band-pass signal treated as flat (regularises the correlations)
+    aggregation_px: int = 0  # extra box aggregation of the cost (0 = none)
+    subpixel: bool = True  # parabola fit around the winner (False: integer winner-takes-all)
 
 
 @dataclass
 class DisparityMap:
     """Per-pixel disparity of the widest filter pair (px of the planes searched), + = farther."""
 
-    disparity_px: np.ndarray        # (H, W) float32, sub-pixel
-    confidence: np.ndarray          # (H, W) float32 in [0, 1]
-    cost: np.ndarray                # (H, W) float32, colour-line measure at the minimum (0 = aligned)
-    candidates_px: np.ndarray       # (D,) the disparities searched
+    disparity_px: np.ndarray  # (H, W) float32, sub-pixel
+    confidence: np.ndarray  # (H, W) float32 in [0, 1]
+    cost: np.ndarray  # (H, W) float32, colour-line measure at the minimum (0 = aligned)
+    candidates_px: np.ndarray  # (D,) the disparities searched
 
 
 def _box(image: np.ndarray, window: int) -> np.ndarray:
@@ -162,21 +184,31 @@ def _box(image: np.ndarray, window: int) -> np.ndarray:
 class AlignmentCost:
     """The colour-line measure of one set of band-pass planes for any channel sampling (uniform or per-pixel)."""
 
-    def __init__(self, band: np.ndarray, aperture: FilterAperture, window_px: int, noise_floor: float,
-                 interpolation: int = cv2.INTER_LINEAR) -> None:
+    def __init__(
+        self,
+        band: np.ndarray,
+        aperture: FilterAperture,
+        window_px: int,
+        noise_floor: float,
+        interpolation: int = cv2.INTER_LINEAR,
+    ) -> None:
         self.interpolation = interpolation
         self.band = [np.ascontiguousarray(band[..., c], dtype=np.float32) for c in range(3)]
         self.shifts = channel_shifts(aperture)
         self.window = int(window_px) | 1
-        self.eps = np.float32(noise_floor ** 2)
+        self.eps = np.float32(noise_floor**2)
 
     def _measure(self, channels: list[np.ndarray]) -> np.ndarray:
         return colour_line_cost(channels, self.window, self.eps)
 
     def uniform(self, disparity_px: float) -> np.ndarray:
         """Cost map for one disparity everywhere."""
-        channels = [sample_shifted(self.band[c], disparity_px * self.shifts[c, 0], disparity_px * self.shifts[c, 1],
-                                   self.interpolation) for c in range(3)]
+        channels = [
+            sample_shifted(
+                self.band[c], disparity_px * self.shifts[c, 0], disparity_px * self.shifts[c, 1], self.interpolation
+            )
+            for c in range(3)
+        ]
         return self._measure(channels)
 
     def per_pixel(self, disparity_px: np.ndarray, origin_xy: tuple[int, int] = (0, 0)) -> np.ndarray:
@@ -198,8 +230,13 @@ class AlignmentCost:
         height, width = disparity_px.shape
         xs = np.arange(width, dtype=np.float32)[None, :]
         ys = np.arange(height, dtype=np.float32)[:, None]
-        base = [(_shifted_map(xs, disparity_px, self.shifts[c, 0], (height, width)),
-                 _shifted_map(ys, disparity_px, self.shifts[c, 1], (height, width))) for c in range(3)]
+        base = [
+            (
+                _shifted_map(xs, disparity_px, self.shifts[c, 0], (height, width)),
+                _shifted_map(ys, disparity_px, self.shifts[c, 1], (height, width)),
+            )
+            for c in range(3)
+        ]
 
         def one(k: int) -> np.ndarray:
             delta = float(deltas[k])
@@ -211,9 +248,15 @@ class AlignmentCost:
                 for c in range(3):
                     map_x, map_y = base[c][0][a0:a1], base[c][1][a0:a1]
                     sx, sy = moves[c]
-                    channels.append(cv2.remap(self.band[c], map_x + sx if sx != 0 else map_x,
-                                              map_y + sy if sy != 0 else map_y, self.interpolation,
-                                              borderMode=cv2.BORDER_REPLICATE))
+                    channels.append(
+                        cv2.remap(
+                            self.band[c],
+                            map_x + sx if sx != 0 else map_x,
+                            map_y + sy if sy != 0 else map_y,
+                            self.interpolation,
+                            borderMode=cv2.BORDER_REPLICATE,
+                        )
+                    )
                 return channels
 
             cost = colour_line_cost_rows(sampled, height, self.window, self.eps)
@@ -260,11 +303,12 @@ def colour_line_energy(channel: np.ndarray, window: int, eps: np.float32) -> np.
     return np.reciprocal(e, out=e)
 
 
-_STRIP_ROWS = 96     # the cost is computed in strips of rows (plus the window's halo) that stay in the cache
+_STRIP_ROWS = 96  # the cost is computed in strips of rows (plus the window's halo) that stay in the cache
 
 
-def colour_line_cost(channels: list[np.ndarray], window: int, eps: np.float32,
-                     energy: list[np.ndarray | None] | None = None) -> np.ndarray:
+def colour_line_cost(
+    channels: list[np.ndarray], window: int, eps: np.float32, energy: list[np.ndarray | None] | None = None
+) -> np.ndarray:
     """The colour-line measure of three (band-pass, zero-mean) channels over `window` x `window` windows
     (float32). `energy` may hold precomputed 1/sqrt(box(c^2) + eps) maps per channel.
 
@@ -278,14 +322,19 @@ def colour_line_cost(channels: list[np.ndarray], window: int, eps: np.float32,
     for y0 in range(0, height, _STRIP_ROWS):
         y1 = min(height, y0 + _STRIP_ROWS)
         a0, a1 = max(0, y0 - halo), min(height, y1 + halo)
-        part = _colour_line_block([ch[a0:a1] for ch in channels], window, eps,
-                                  None if energy is None else [None if e is None else e[a0:a1] for e in energy])
-        out[y0:y1] = part[y0 - a0:y1 - a0]
+        part = _colour_line_block(
+            [ch[a0:a1] for ch in channels],
+            window,
+            eps,
+            None if energy is None else [None if e is None else e[a0:a1] for e in energy],
+        )
+        out[y0:y1] = part[y0 - a0 : y1 - a0]
     return out
 
 
-def colour_line_cost_rows(sampled, height: int, window: int, eps: np.float32,
-                          energy: list[np.ndarray | None] | None = None) -> np.ndarray:
+def colour_line_cost_rows(
+    sampled, height: int, window: int, eps: np.float32, energy: list[np.ndarray | None] | None = None
+) -> np.ndarray:
     """`colour_line_cost` of channels produced strip by strip: `sampled(a0, a1)` gives rows a0..a1 of the three
     channels (a warp of those rows only), so that the warped strips are used while still in the cache."""
     halo = window // 2
@@ -295,16 +344,18 @@ def colour_line_cost_rows(sampled, height: int, window: int, eps: np.float32,
     for y0 in range(0, height, _STRIP_ROWS):
         y1 = min(height, y0 + _STRIP_ROWS)
         a0, a1 = max(0, y0 - halo), min(height, y1 + halo)
-        part = _colour_line_block(sampled(a0, a1), window, eps,
-                                  None if energy is None else [None if e is None else e[a0:a1] for e in energy])
+        part = _colour_line_block(
+            sampled(a0, a1), window, eps, None if energy is None else [None if e is None else e[a0:a1] for e in energy]
+        )
         if out is None:
             out = np.empty((height, part.shape[1]), np.float32)
-        out[y0:y1] = part[y0 - a0:y1 - a0]
+        out[y0:y1] = part[y0 - a0 : y1 - a0]
     return out
 
 
-def _colour_line_block(channels: list[np.ndarray], window: int, eps: np.float32,
-                       energy: list[np.ndarray | None] | None = None) -> np.ndarray:
+def _colour_line_block(
+    channels: list[np.ndarray], window: int, eps: np.float32, energy: list[np.ndarray | None] | None = None
+) -> np.ndarray:
     inv = []
     for c in range(3):
         if energy is not None and energy[c] is not None:
@@ -333,8 +384,13 @@ def _colour_line_block(channels: list[np.ndarray], window: int, eps: np.float32,
     return np.clip(triple, 0.0, 1.0, out=triple)
 
 
-def estimate_disparity(planes: np.ndarray, aperture: FilterAperture, range_px: tuple[float, float],
-                       params: DisparityParams = DisparityParams(), band: np.ndarray | None = None) -> DisparityMap:
+def estimate_disparity(
+    planes: np.ndarray,
+    aperture: FilterAperture,
+    range_px: tuple[float, float],
+    params: DisparityParams = DisparityParams(),
+    band: np.ndarray | None = None,
+) -> DisparityMap:
     """Winner-takes-all over a colour-line cost volume, parabola sub-pixel refinement and a confidence.
 
     For speed the correlations are uncentred (the band-pass planes have zero local mean): per
@@ -346,7 +402,7 @@ def estimate_disparity(planes: np.ndarray, aperture: FilterAperture, range_px: t
         band = band_pass(planes)
     window = int(params.window_px) | 1
     channels = [np.ascontiguousarray(band[..., c], dtype=np.float32) for c in range(3)]
-    eps = np.float32(params.noise_floor ** 2)
+    eps = np.float32(params.noise_floor**2)
     shifts = channel_shifts(aperture)
     candidates = candidate_disparities(range_px, params.step_px)
     count = len(candidates)
@@ -360,8 +416,12 @@ def estimate_disparity(planes: np.ndarray, aperture: FilterAperture, range_px: t
 
         def sampled(a0: int, a1: int) -> list[np.ndarray]:
             """Rows a0..a1 of the channels sampled at x + d s_c (a warp of those rows only)."""
-            return [channels[c][a0:a1] if still[c] is not None else
-                    sample_shifted_rows(channels[c], d * shifts[c, 0], d * shifts[c, 1], a0, a1) for c in range(3)]
+            return [
+                channels[c][a0:a1]
+                if still[c] is not None
+                else sample_shifted_rows(channels[c], d * shifts[c, 0], d * shifts[c, 1], a0, a1)
+                for c in range(3)
+            ]
 
         cost = colour_line_cost_rows(sampled, height, window, eps, still)
         if params.aggregation_px > 1:
@@ -383,7 +443,7 @@ def estimate_disparity(planes: np.ndarray, aperture: FilterAperture, range_px: t
         a = vol[0].copy()
         total = vol[0].astype(np.float32)
         for i in range(1, count):
-            np.copyto(b, i, where=vol[i] < a)          # strict: the first minimum wins, as np.argmin
+            np.copyto(b, i, where=vol[i] < a)  # strict: the first minimum wins, as np.argmin
             np.minimum(a, vol[i], out=a)
             total += vol[i]
         best[rows], at[rows] = b, a
@@ -409,7 +469,7 @@ def estimate_disparity(planes: np.ndarray, aperture: FilterAperture, range_px: t
         m = _box(channel, window)
         texture += np.maximum(_box(channel * channel, window) - m * m, 0.0)
     texture /= 3.0
-    contrast = texture / (texture + np.float32(4.0 * params.noise_floor ** 2))
+    contrast = texture / (texture + np.float32(4.0 * params.noise_floor**2))
     confidence = (dip * unique * contrast).astype(np.float32)
     confidence[~interior] *= 0.25
     return DisparityMap(disparity, confidence, at.astype(np.float32), candidates)

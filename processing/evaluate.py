@@ -6,6 +6,7 @@ majority overlap; peers, which have no segmentation, are given the true object m
 (an advantage to them). For the in-focus object (true depth 0) the relative error is
 replaced by the absolute error in mm, as the paper's relative error is undefined there.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -23,8 +24,8 @@ class ObjectRow:
 
     label: str
     name: str
-    true_mm: float                              # true inter-object depth ΔD
-    estimates_mm: dict[str, float]              # method -> estimated ΔD
+    true_mm: float  # true inter-object depth ΔD
+    estimates_mm: dict[str, float]  # method -> estimated ΔD
 
     def abs_error_mm(self, method: str) -> float:
         return abs(self.estimates_mm[method] - self.true_mm)
@@ -64,8 +65,14 @@ def _depth_from_disparity(disparity_input_px: float, optics: MCAOptics) -> float
     return float(optics.inter_object_depth_mm(optics.inter_image_depth_mm(float(disparity_input_px))))
 
 
-def evaluate_scene(truth: dict, truth_labels: np.ndarray, result: DepthResult, optics: MCAOptics,
-                   peers: dict[str, np.ndarray] | None = None, seconds: float = 0.0) -> SceneEvaluation:
+def evaluate_scene(
+    truth: dict,
+    truth_labels: np.ndarray,
+    result: DepthResult,
+    optics: MCAOptics,
+    peers: dict[str, np.ndarray] | None = None,
+    seconds: float = 0.0,
+) -> SceneEvaluation:
     """Table 2 rows for one scene. `truth_labels` may be at full resolution: it is resized to the result's grid.
 
     `peers` maps a method name to a disparity map (input px, the result's grid, NaN = invalid).
@@ -91,18 +98,21 @@ def evaluate_scene(truth: dict, truth_labels: np.ndarray, result: DepthResult, o
         label = obj.get("paper_label") or str(obj["id"])
         if slant is None:
             estimates = {}
-            estimates["ours"] = region.inter_object_depth_mm if region is not None and \
-                region.inter_object_depth_mm is not None else float("nan")
+            estimates["ours"] = (
+                region.inter_object_depth_mm
+                if region is not None and region.inter_object_depth_mm is not None
+                else float("nan")
+            )
             for name, disparity in peers.items():
                 estimates[name] = _depth_from_disparity(float(np.nanmedian(disparity[core])), optics)
             rows.append(ObjectRow(label, obj["name"], float(obj["inter_object_depth_mm"]), estimates))
             continue
         labels_ab = label.split("-") if "-" in label else [label + "0", label + "1"]
-        scale_in = truth_labels.shape[1] / width          # input (truth-raster) px per result px
+        scale_in = truth_labels.shape[1] / width  # input (truth-raster) px per result px
         extent = slant.get("extent_px")
-        for end, ((band, x, y), end_label, key) in enumerate(zip(
-                _end_points(mask, slant["axis"]), labels_ab,
-                ("from_inter_object_depth_mm", "to_inter_object_depth_mm"))):
+        for end, ((band, x, y), end_label, key) in enumerate(
+            zip(_end_points(mask, slant["axis"]), labels_ab, ("from_inter_object_depth_mm", "to_inter_object_depth_mm"))
+        ):
             estimates = {}
             if region is not None:
                 a, b, c = region.slant if region.slant is not None else (0.0, 0.0, region.disparity_px)
@@ -117,8 +127,11 @@ def evaluate_scene(truth: dict, truth_labels: np.ndarray, result: DepthResult, o
                 estimates["ours"] = float("nan")
             for name, disparity in peers.items():
                 estimates[name] = _depth_from_disparity(float(np.nanmedian(disparity[band])), optics)
-            rows.append(ObjectRow(end_label, f"{obj['name']} ({'near' if 'from' in key else 'far'} end)",
-                                  float(slant[key]), estimates))
+            rows.append(
+                ObjectRow(
+                    end_label, f"{obj['name']} ({'near' if 'from' in key else 'far'} end)", float(slant[key]), estimates
+                )
+            )
     true_count = len(truth["objects"]) + (1 if truth.get("background") else 0)
     # order: every object found in a region of its own (a missing or shared object fails), every pair with
     # distinct true ranks ranked the same way, and every true occlusion (truth `occludes`) found as one
@@ -145,7 +158,7 @@ def evaluate_scene(truth: dict, truth_labels: np.ndarray, result: DepthResult, o
 class Summary:
     median_rel: dict[str, float]
     worst_rel: dict[str, float]
-    focus_abs_mm: dict[str, float]               # worst absolute error of in-focus objects
+    focus_abs_mm: dict[str, float]  # worst absolute error of in-focus objects
 
 
 def summarise(evaluations: list[SceneEvaluation], methods: list[str]) -> Summary:
@@ -174,14 +187,18 @@ def format_table(evaluations: list[SceneEvaluation], methods: list[str]) -> str:
                 rel_text = "  focus" if rel is None else f"{100 * rel:6.1f}%"
                 line += f" | {r.estimates_mm[m]:>10.1f} {r.abs_error_mm(m):>6.1f} {rel_text:>7}"
             lines.append(line)
-        lines.append(f"{e.scene:<8} regions {e.region_count} (true {e.true_region_count}), order "
-                     f"{'right' if e.order_correct else 'WRONG'}, {e.seconds:.2f} s"
-                     + (f"; {'; '.join(e.notes)}" if e.notes else ""))
+        lines.append(
+            f"{e.scene:<8} regions {e.region_count} (true {e.true_region_count}), order "
+            f"{'right' if e.order_correct else 'WRONG'}, {e.seconds:.2f} s"
+            + (f"; {'; '.join(e.notes)}" if e.notes else "")
+        )
     s = summarise(evaluations, methods)
     lines.append("-" * len(head))
     for m in methods:
-        lines.append(f"{m:<12} median rel {100 * s.median_rel[m]:5.1f}%  worst rel {100 * s.worst_rel[m]:6.1f}%  "
-                     f"in-focus worst abs {s.focus_abs_mm[m]:5.1f} mm")
+        lines.append(
+            f"{m:<12} median rel {100 * s.median_rel[m]:5.1f}%  worst rel {100 * s.worst_rel[m]:6.1f}%  "
+            f"in-focus worst abs {s.focus_abs_mm[m]:5.1f} mm"
+        )
     regions_ok = sum(e.region_count == e.true_region_count for e in evaluations)
     order_ok = sum(e.order_correct for e in evaluations)
     lines.append(f"region count right in {regions_ok}/{len(evaluations)}, order right in {order_ok}/{len(evaluations)}")

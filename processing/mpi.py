@@ -1,4 +1,5 @@
 """The 3D images as multi-plane images (paper eqs. 3 and 16) and the all-in-focus image with colour fringes removed."""
+
 from __future__ import annotations
 
 import cv2
@@ -13,7 +14,7 @@ def all_in_focus(planes: np.ndarray, aperture: FilterAperture, disparity_px: np.
     """Each channel sampled at x + d(x) s_c with the region-model disparity (processing px): the channels of
     every region are re-aligned, so its colour fringes vanish (section V-A)."""
     image = warp_channels(planes, aperture, disparity_px, cv2.INTER_CUBIC)
-    return np.maximum(image, 0.0, out=image)                 # cubic overshoot below black
+    return np.maximum(image, 0.0, out=image)  # cubic overshoot below black
 
 
 def region_alpha(labels: np.ndarray, region_id: int, feather_px: float = 0.0) -> np.ndarray:
@@ -24,9 +25,14 @@ def region_alpha(labels: np.ndarray, region_id: int, feather_px: float = 0.0) ->
     return alpha
 
 
-def multi_plane_images(image: np.ndarray, labels: np.ndarray, region_ids: list[int],
-                       disparities_px: dict[int, float], inter_image_depths_mm: dict[int, float | None],
-                       inter_object_depths_mm: dict[int, float | None]) -> list[MultiPlaneImage]:
+def multi_plane_images(
+    image: np.ndarray,
+    labels: np.ndarray,
+    region_ids: list[int],
+    disparities_px: dict[int, float],
+    inter_image_depths_mm: dict[int, float | None],
+    inter_object_depths_mm: dict[int, float | None],
+) -> list[MultiPlaneImage]:
     """One RGBA plane per region, ordered back to front (farthest first, ready for `over` compositing).
 
     The 3D perception image places plane l at its inter-image depth Δd_0l (eq. 3); the accurate
@@ -40,9 +46,16 @@ def multi_plane_images(image: np.ndarray, labels: np.ndarray, region_ids: list[i
     np.clip(display, 0.0, 1.0, out=display)
     layers = []
     for region_id in sorted(region_ids, key=lambda i: -disparities_px[i]):
-        layers.append(MultiPlaneImage(region_id, None, inter_image_depths_mm.get(region_id),
-                                      inter_object_depths_mm.get(region_id), disparities_px[region_id],
-                                      source=(display, labels)))
+        layers.append(
+            MultiPlaneImage(
+                region_id,
+                None,
+                inter_image_depths_mm.get(region_id),
+                inter_object_depths_mm.get(region_id),
+                disparities_px[region_id],
+                source=(display, labels),
+            )
+        )
     return layers
 
 

@@ -12,6 +12,7 @@ depth, ΔD inter-object (object-side) depth from the focus plane.
 
 All functions accept floats or numpy arrays (elementwise).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -34,14 +35,16 @@ def inter_image_depth_mm(disparity_mm: Value, sensor_distance_mm: float, filter_
     return disparity_mm * sensor_distance_mm / (filter_centre_distance_mm + disparity_mm)
 
 
-def disparity_mm_from_inter_image_depth(inter_image_depth: Value, sensor_distance_mm: float,
-                                        filter_centre_distance_mm: float) -> Value:
+def disparity_mm_from_inter_image_depth(
+    inter_image_depth: Value, sensor_distance_mm: float, filter_centre_distance_mm: float
+) -> Value:
     """δ = d_a Δd / (d_ls - Δd): disparity on the sensor of an image plane Δd in front of it (eq. 11)."""
     return filter_centre_distance_mm * inter_image_depth / (sensor_distance_mm - inter_image_depth)
 
 
-def inter_object_depth_from_disparity_mm(disparity_mm: Value, sensor_distance_mm: float, focal_length_mm: float,
-                                         filter_centre_distance_mm: float) -> Value:
+def inter_object_depth_from_disparity_mm(
+    disparity_mm: Value, sensor_distance_mm: float, focal_length_mm: float, filter_centre_distance_mm: float
+) -> Value:
     """ΔD = d_ls δ / (M (M d_a - δ)): object-side depth straight from disparity (eq. 10)."""
     m = magnification(sensor_distance_mm, focal_length_mm)
     return sensor_distance_mm * disparity_mm / (m * (m * filter_centre_distance_mm - disparity_mm))
@@ -53,12 +56,14 @@ def inter_object_depth_far_mm(inter_image_depth: Value, sensor_distance_mm: floa
     return inter_image_depth / (m * m * (1.0 - (m + 1.0) / m * inter_image_depth / sensor_distance_mm))
 
 
-def inter_object_depth_near_mm(inter_image_depth_magnitude: Value, sensor_distance_mm: float,
-                               focal_length_mm: float) -> Value:
+def inter_object_depth_near_mm(
+    inter_image_depth_magnitude: Value, sensor_distance_mm: float, focal_length_mm: float
+) -> Value:
     """|ΔD| = |Δd| / (M² (1 + (M+1)/M · |Δd|/d_ls)) for an object before the focus plane (eq. 14), magnitudes."""
     m = magnification(sensor_distance_mm, focal_length_mm)
     return inter_image_depth_magnitude / (
-        m * m * (1.0 + (m + 1.0) / m * inter_image_depth_magnitude / sensor_distance_mm))
+        m * m * (1.0 + (m + 1.0) / m * inter_image_depth_magnitude / sensor_distance_mm)
+    )
 
 
 def inter_object_depth_mm(inter_image_depth: Value, sensor_distance_mm: float, focal_length_mm: float) -> Value:
@@ -70,8 +75,9 @@ def inter_object_depth_mm(inter_image_depth: Value, sensor_distance_mm: float, f
     return result if isinstance(inter_image_depth, np.ndarray) else float(result)  # type: ignore[return-value]
 
 
-def inter_image_depth_from_inter_object_depth_mm(inter_object_depth: Value, sensor_distance_mm: float,
-                                                 focal_length_mm: float) -> Value:
+def inter_image_depth_from_inter_object_depth_mm(
+    inter_object_depth: Value, sensor_distance_mm: float, focal_length_mm: float
+) -> Value:
     """Inverse of eqs. 13/14: Δd = M² ΔD / (1 + M (M+1) ΔD / d_ls), signed."""
     m = magnification(sensor_distance_mm, focal_length_mm)
     return m * m * inter_object_depth / (1.0 + m * (m + 1.0) * inter_object_depth / sensor_distance_mm)
@@ -85,8 +91,9 @@ def image_distance_mm(object_distance_mm: Value, focal_length_mm: float) -> Valu
     return focal_length_mm * object_distance_mm / (object_distance_mm - focal_length_mm)
 
 
-def thin_lens_disparity_mm(object_distance_mm: Value, sensor_distance_mm: float, focal_length_mm: float,
-                           filter_centre_distance_mm: float) -> Value:
+def thin_lens_disparity_mm(
+    object_distance_mm: Value, sensor_distance_mm: float, focal_length_mm: float, filter_centre_distance_mm: float
+) -> Value:
     """Exact disparity on the sensor between two sub-aperture images of a point at `object_distance_mm`.
 
     Rays through two aperture points d_a apart converge at v and cross the sensor at d_ls
@@ -96,8 +103,9 @@ def thin_lens_disparity_mm(object_distance_mm: Value, sensor_distance_mm: float,
     return filter_centre_distance_mm * (sensor_distance_mm - v) / v
 
 
-def thin_lens_distance_mm(disparity_mm: Value, sensor_distance_mm: float, focal_length_mm: float,
-                          filter_centre_distance_mm: float) -> Value:
+def thin_lens_distance_mm(
+    disparity_mm: Value, sensor_distance_mm: float, focal_length_mm: float, filter_centre_distance_mm: float
+) -> Value:
     """Exact object distance from the lens for a disparity on the sensor (inverse of `thin_lens_disparity_mm`)."""
     v = filter_centre_distance_mm * sensor_distance_mm / (filter_centre_distance_mm + disparity_mm)
     return focal_length_mm * v / (v - focal_length_mm)
@@ -126,9 +134,11 @@ class MCAOptics:
     pixel_pitch_mm: float
 
     @classmethod
-    def from_profile(cls, profile: CameraProfile, pixel_pitch_mm: float | None = None) -> "MCAOptics":
+    def from_profile(cls, profile: CameraProfile, pixel_pitch_mm: float | None = None) -> MCAOptics:
         if profile.lens is None:
-            raise ValueError(f"profile '{profile.name}' has no [lens] section: only disparities in pixels are available")
+            raise ValueError(
+                f"profile '{profile.name}' has no [lens] section: only disparities in pixels are available"
+            )
         pitch = pixel_pitch_mm if pixel_pitch_mm is not None else profile.pixel_pitch_mm
         if pitch is None:
             raise ValueError(f"profile '{profile.name}' has no camera.pixel_pitch_mm: cannot convert pixels to mm")
@@ -144,19 +154,25 @@ class MCAOptics:
         return f * d / (d - f)
 
     def inter_image_depth_mm(self, disparity_px: Value) -> Value:
-        return inter_image_depth_mm(disparity_px * self.pixel_pitch_mm, self.sensor_distance_mm,
-                                    self.filter_centre_distance_mm)
+        return inter_image_depth_mm(
+            disparity_px * self.pixel_pitch_mm, self.sensor_distance_mm, self.filter_centre_distance_mm
+        )
 
     def disparity_px(self, inter_image_depth: Value) -> Value:
-        return disparity_mm_from_inter_image_depth(inter_image_depth, self.sensor_distance_mm,
-                                                   self.filter_centre_distance_mm) / self.pixel_pitch_mm
+        return (
+            disparity_mm_from_inter_image_depth(
+                inter_image_depth, self.sensor_distance_mm, self.filter_centre_distance_mm
+            )
+            / self.pixel_pitch_mm
+        )
 
     def inter_object_depth_mm(self, inter_image_depth: Value) -> Value:
         return inter_object_depth_mm(inter_image_depth, self.sensor_distance_mm, self.focal_length_mm)
 
     def inter_image_depth_from_inter_object_mm(self, inter_object_depth: Value) -> Value:
-        return inter_image_depth_from_inter_object_depth_mm(inter_object_depth, self.sensor_distance_mm,
-                                                            self.focal_length_mm)
+        return inter_image_depth_from_inter_object_depth_mm(
+            inter_object_depth, self.sensor_distance_mm, self.focal_length_mm
+        )
 
     def distance_mm(self, disparity_px: Value) -> Value:
         """Distance from the lens for a disparity, via eqs. 2 and 13/14."""
@@ -164,8 +180,12 @@ class MCAOptics:
 
     def disparity_px_at_distance(self, distance_mm: Value) -> Value:
         """Disparity of an object at `distance_mm`, by the exact thin-lens model."""
-        return thin_lens_disparity_mm(distance_mm, self.sensor_distance_mm, self.focal_length_mm,
-                                      self.filter_centre_distance_mm) / self.pixel_pitch_mm
+        return (
+            thin_lens_disparity_mm(
+                distance_mm, self.sensor_distance_mm, self.focal_length_mm, self.filter_centre_distance_mm
+            )
+            / self.pixel_pitch_mm
+        )
 
     def from_disparity(self, disparity_px: float) -> DepthEstimate:
         image_depth = float(self.inter_image_depth_mm(disparity_px))

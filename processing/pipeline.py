@@ -21,6 +21,7 @@ Stages (names as given to the recorder and used as keys of `DepthResult.timings_
 
 `Recorder.timing(stage, seconds)` is called after each stage with its wall-clock time.
 """
+
 from __future__ import annotations
 
 import threading
@@ -36,8 +37,17 @@ from mca.processing.disparity import DisparityParams, estimate_disparity, parall
 from mca.processing.mpi import all_in_focus, multi_plane_images
 from mca.processing.optics import MCAOptics
 from mca.processing.result import DepthResult, NullRecorder, Recorder, Region
-from mca.processing.sketch import (BoundaryParams, RefineParams, SketchParams, build_sketch, occlusion_aware_weights,
-                               prepare_refine_level, refine_regions, rescale_plane, snap_boundaries)
+from mca.processing.sketch import (
+    BoundaryParams,
+    RefineParams,
+    SketchParams,
+    build_sketch,
+    occlusion_aware_weights,
+    prepare_refine_level,
+    refine_regions,
+    rescale_plane,
+    snap_boundaries,
+)
 
 # Position of each channel's samples relative to the centre of its 2x2 RGGB block, in half-resolution
 # (processing) pixels, for planes taken straight from an RGGB mosaic: red at (0, 0), the mean of the two
@@ -54,12 +64,12 @@ DEPTH_RANGE_MM = (-190.0, 600.0)
 class PipelineParams:
     """Knobs of the whole pipeline; defaults are those the evaluation and the tests use."""
 
-    analysis_max_side_px: int = 960        # the per-pixel search and the sketch run on a grid this large
+    analysis_max_side_px: int = 960  # the per-pixel search and the sketch run on a grid this large
     disparity: DisparityParams = DisparityParams()
     sketch: SketchParams = SketchParams()
     refine: RefineParams = RefineParams()
-    occlusion_margin_px: int = 3           # analysis px excluded beside occluders when refining
-    boundaries: BoundaryParams | None = BoundaryParams()   # None: labels upsampled by nearest neighbour only
+    occlusion_margin_px: int = 3  # analysis px excluded beside occluders when refining
+    boundaries: BoundaryParams | None = BoundaryParams()  # None: labels upsampled by nearest neighbour only
 
 
 @dataclass
@@ -67,7 +77,7 @@ class _Timer:
     recorder: Recorder
     timings: dict[str, float] = field(default_factory=dict)
 
-    def stage(self, name: str) -> "_Stage":
+    def stage(self, name: str) -> _Stage:
         return _Stage(self, name)
 
 
@@ -75,7 +85,7 @@ class _Stage:
     def __init__(self, timer: _Timer, name: str) -> None:
         self.timer, self.name = timer, name
 
-    def __enter__(self) -> "_Stage":
+    def __enter__(self) -> _Stage:
         self.start = time.perf_counter()
         return self
 
@@ -95,7 +105,7 @@ class _Background:
         def target() -> None:
             try:
                 self._value = function(*args)
-            except BaseException as error:  # noqa: BLE001 - handed to the caller of result()
+            except BaseException as error:
                 self._error = error
 
         self._thread = threading.Thread(target=target, name="mca-refine-level", daemon=True)
@@ -108,8 +118,9 @@ class _Background:
         return self._value
 
 
-def default_disparity_range_px(aperture: FilterAperture, optics: MCAOptics | None,
-                               shape_px: tuple[int, int]) -> tuple[float, float]:
+def default_disparity_range_px(
+    aperture: FilterAperture, optics: MCAOptics | None, shape_px: tuple[int, int]
+) -> tuple[float, float]:
     """Search range in input pixels: DEPTH_RANGE_MM around the focus plane with optics, else from the frame
     size (-2 % .. +3.5 % of the longer side, which covers the authors' range for the bando2008 photographs)."""
     if optics is not None:
@@ -132,14 +143,19 @@ def catmull_rom_kernel(shift_px: float) -> np.ndarray:
     t = shift_px - base
     a = -0.5
     weights = []
-    for x in (t + 1.0, t, 1.0 - t, 2.0 - t):          # distances to the taps at base-1, base, base+1, base+2
+    for x in (t + 1.0, t, 1.0 - t, 2.0 - t):  # distances to the taps at base-1, base, base+1, base+2
         x = abs(x)
-        weights.append((a + 2) * x ** 3 - (a + 3) * x ** 2 + 1 if x <= 1 else a * x ** 3 - 5 * a * x ** 2
-                       + 8 * a * x - 4 * a if x < 2 else 0.0)
+        weights.append(
+            (a + 2) * x**3 - (a + 3) * x**2 + 1
+            if x <= 1
+            else a * x**3 - 5 * a * x**2 + 8 * a * x - 4 * a
+            if x < 2
+            else 0.0
+        )
     first = base - 1
     span = max(abs(first), abs(first + 3))
     kernel = np.zeros(2 * span + 1, np.float32)
-    kernel[span + first:span + first + 4] = weights
+    kernel[span + first : span + first + 4] = weights
     return kernel
 
 
@@ -153,16 +169,24 @@ def align_channel_samples(planes: np.ndarray, offsets_px: tuple[tuple[float, flo
         if dx == 0 and dy == 0:
             return channels[c]
         # sample at (x - dx, y - dy): the channel's content moves by (+dx, +dy) onto the pixel centres
-        return cv2.sepFilter2D(channels[c], cv2.CV_32F, catmull_rom_kernel(-dx), catmull_rom_kernel(-dy),
-                               borderType=cv2.BORDER_REPLICATE)
+        return cv2.sepFilter2D(
+            channels[c], cv2.CV_32F, catmull_rom_kernel(-dx), catmull_rom_kernel(-dy), borderType=cv2.BORDER_REPLICATE
+        )
 
     return cv2.merge(parallel_map(one, range(3)))
 
 
-def run_pipeline(planes: np.ndarray, aperture: FilterAperture, optics: MCAOptics | None, *,
-                 pixel_scale: float = 1.0, disparity_range_px: tuple[float, float] | None = None,
-                 recorder: Recorder | None = None, channel_offsets_px: tuple[tuple[float, float], ...] | None = None,
-                 params: PipelineParams = PipelineParams()) -> DepthResult:
+def run_pipeline(
+    planes: np.ndarray,
+    aperture: FilterAperture,
+    optics: MCAOptics | None,
+    *,
+    pixel_scale: float = 1.0,
+    disparity_range_px: tuple[float, float] | None = None,
+    recorder: Recorder | None = None,
+    channel_offsets_px: tuple[tuple[float, float], ...] | None = None,
+    params: PipelineParams = PipelineParams(),
+) -> DepthResult:
     """Recover regions, their occlusion order and depths from one MCA capture (paper sections IV-V).
 
     planes: (H, W, 3) float32 linear RGB at processing resolution; pixel_scale: input-image pixels per
@@ -192,13 +216,19 @@ def run_pipeline(planes: np.ndarray, aperture: FilterAperture, optics: MCAOptics
             small = cv2.resize(planes, (width // factor, height // factor), interpolation=cv2.INTER_AREA)
         else:
             small = planes
-        range_in = disparity_range_px or default_disparity_range_px(aperture, optics,
-                                                                   (int(height * pixel_scale), int(width * pixel_scale)))
+        range_in = disparity_range_px or default_disparity_range_px(
+            aperture, optics, (int(height * pixel_scale), int(width * pixel_scale))
+        )
         to_analysis = 1.0 / (pixel_scale * factor)
         range_an = (range_in[0] * to_analysis - 1.0, range_in[1] * to_analysis + 1.0)
         disparity = estimate_disparity(small, aperture, range_an, params.disparity)
-        recorder.record("disparity", disparity_px=disparity.disparity_px / np.float32(to_analysis),
-                        confidence=disparity.confidence, cost=disparity.cost, analysis_scale=float(factor))
+        recorder.record(
+            "disparity",
+            disparity_px=disparity.disparity_px / np.float32(to_analysis),
+            confidence=disparity.confidence,
+            cost=disparity.cost,
+            analysis_scale=float(factor),
+        )
 
     # --- the 2.1D sketch -------------------------------------------------------------------------------------------
     # the refinement's pyramid level and band-pass need no sketch: made on a thread beside the single-threaded
@@ -206,30 +236,45 @@ def run_pipeline(planes: np.ndarray, aperture: FilterAperture, optics: MCAOptics
     refine_level = _Background(prepare_refine_level, planes, params.refine)
     with timer.stage("sketch"):
         sketch = build_sketch(small, aperture, disparity, params.sketch)
-        recorder.record("sketch", labels=sketch.labels, aligned=sketch.aligned, region_count=len(sketch.regions),
-                        focus_region=sketch.focus_region, order=sketch.order, occludes=sketch.occludes)
+        recorder.record(
+            "sketch",
+            labels=sketch.labels,
+            aligned=sketch.aligned,
+            region_count=len(sketch.regions),
+            focus_region=sketch.focus_region,
+            order=sketch.order,
+            occludes=sketch.occludes,
+        )
 
     # --- sub-pixel region models on the processing grid ------------------------------------------------------------
     with timer.stage("refine"):
         labels_full = cv2.resize(sketch.labels.astype(np.int32), (width, height), interpolation=cv2.INTER_NEAREST)
-        weights_an = occlusion_aware_weights(sketch.labels, disparity.confidence, sketch.occludes,
-                                             params.occlusion_margin_px)
+        weights_an = occlusion_aware_weights(
+            sketch.labels, disparity.confidence, sketch.occludes, params.occlusion_margin_px
+        )
         weights_full = cv2.resize(weights_an, (width, height), interpolation=cv2.INTER_LINEAR)
         init = {r.id: rescale_plane(r.plane, float(factor)) for r in sketch.regions}
         slanted = {r.id: r.slanted for r in sketch.regions}
         refine = params.refine
         refine = RefineParams(**{**refine.__dict__, "search_radius_px": max(refine.search_radius_px, 0.5 * factor)})
-        planes_proc, dips = refine_regions(planes, aperture, labels_full, weights_full, init, slanted, refine,
-                                           prepared=refine_level.result())
-        centroids = {r.id: ((r.centroid_xy[0] + 0.5) * factor - 0.5, (r.centroid_xy[1] + 0.5) * factor - 0.5)
-                     for r in sketch.regions}
+        planes_proc, dips = refine_regions(
+            planes, aperture, labels_full, weights_full, init, slanted, refine, prepared=refine_level.result()
+        )
+        centroids = {
+            r.id: ((r.centroid_xy[0] + 0.5) * factor - 0.5, (r.centroid_xy[1] + 0.5) * factor - 0.5)
+            for r in sketch.regions
+        }
         planes_in = {i: rescale_plane(p, pixel_scale) for i, p in planes_proc.items()}
         centre_disp = {}
         for i, (a, b, c) in planes_in.items():
             x, y = ((centroids[i][0] + 0.5) * pixel_scale - 0.5, (centroids[i][1] + 0.5) * pixel_scale - 0.5)
             centre_disp[i] = float(a * x + b * y + c)
-        recorder.record("refine", disparity_px=centre_disp,
-                        slant={i: (planes_in[i] if slanted[i] else None) for i in planes_in}, dip=dips)
+        recorder.record(
+            "refine",
+            disparity_px=centre_disp,
+            slant={i: (planes_in[i] if slanted[i] else None) for i in planes_in},
+            dip=dips,
+        )
 
     # --- depth ---------------------------------------------------------------------------------------------------
     with timer.stage("depth"):
@@ -239,8 +284,9 @@ def run_pipeline(planes: np.ndarray, aperture: FilterAperture, optics: MCAOptics
         if params.boundaries is not None and factor > 1:
             # region boundaries at processing resolution (the analysis grid's are blocks of `factor` px)
             start = time.perf_counter()
-            labels_full = snap_boundaries(planes, aperture, labels_full, small, sketch.labels, sketch.aligned, coef,
-                                          factor, params.boundaries)
+            labels_full = snap_boundaries(
+                planes, aperture, labels_full, small, sketch.labels, sketch.aligned, coef, factor, params.boundaries
+            )
             timer.timings["boundaries"] = time.perf_counter() - start
         # constant regions: a gather; slanted ones a x + b y + c on their own pixels
         model_proc = np.take(coef[:, 2], labels_full)
@@ -249,12 +295,14 @@ def run_pipeline(planes: np.ndarray, aperture: FilterAperture, optics: MCAOptics
             if a != 0.0 or b != 0.0:
                 sel = labels_full == i
                 ys_sel, xs_sel = np.nonzero(sel)
-                model_proc[sel] = (coef[i, 0] * xs_sel.astype(np.float32) + coef[i, 1] * ys_sel.astype(np.float32)
-                                   + coef[i, 2])
+                model_proc[sel] = (
+                    coef[i, 0] * xs_sel.astype(np.float32) + coef[i, 1] * ys_sel.astype(np.float32) + coef[i, 2]
+                )
                 slanted_pixels[i] = sel
         model_in = model_proc * np.float32(pixel_scale)
-        raw_in = cv2.resize(disparity.disparity_px, (width, height), interpolation=cv2.INTER_LINEAR) \
-            / np.float32(to_analysis)
+        raw_in = cv2.resize(disparity.disparity_px, (width, height), interpolation=cv2.INTER_LINEAR) / np.float32(
+            to_analysis
+        )
         confidence_full = cv2.resize(disparity.confidence, (width, height), interpolation=cv2.INTER_LINEAR)
         depth = None
         if optics is not None:
@@ -278,16 +326,23 @@ def run_pipeline(planes: np.ndarray, aperture: FilterAperture, optics: MCAOptics
             i = r.id
             chain = region_depth(centre_disp[i], optics) if optics is not None else None
             occludes = sorted(j for j in sketch.occludes.get(i, []) if centre_disp[j] > centre_disp[i]) + sorted(
-                j for j, backs in sketch.occludes.items() if i in backs and centre_disp[j] > centre_disp[i])
-            regions.append(Region(
-                id=i, pixels=int(counts[i]), order=order[i], occludes=sorted(set(occludes)),
-                disparity_px=centre_disp[i],
-                inter_image_depth_mm=chain.inter_image_depth_mm if chain else None,
-                inter_object_depth_mm=chain.inter_object_depth_mm if chain else None,
-                distance_mm=chain.distance_mm if chain else None,
-                slant=tuple(float(v) for v in planes_in[i]) if slanted[i] else None,
-                in_focus=(i == focus_id), confidence=float(np.clip(0.5 * r.confidence + 0.5 * dips.get(i, 0.0), 0, 1)),
-            ))
+                j for j, backs in sketch.occludes.items() if i in backs and centre_disp[j] > centre_disp[i]
+            )
+            regions.append(
+                Region(
+                    id=i,
+                    pixels=int(counts[i]),
+                    order=order[i],
+                    occludes=sorted(set(occludes)),
+                    disparity_px=centre_disp[i],
+                    inter_image_depth_mm=chain.inter_image_depth_mm if chain else None,
+                    inter_object_depth_mm=chain.inter_object_depth_mm if chain else None,
+                    distance_mm=chain.distance_mm if chain else None,
+                    slant=tuple(float(v) for v in planes_in[i]) if slanted[i] else None,
+                    in_focus=(i == focus_id),
+                    confidence=float(np.clip(0.5 * r.confidence + 0.5 * dips.get(i, 0.0), 0, 1)),
+                )
+            )
         regions.sort(key=lambda r: r.order)
         labels16 = labels_full.astype(np.uint16)
         record_items = dict(labels=labels16, disparity_px=model_in, regions=regions)
@@ -301,12 +356,26 @@ def run_pipeline(planes: np.ndarray, aperture: FilterAperture, optics: MCAOptics
         recorder.record("all_in_focus", image=sharp)
     with timer.stage("mpi"):
         by_id = {r.id: r for r in regions}
-        layers = multi_plane_images(sharp, labels16, [r.id for r in regions],
-                                    {i: by_id[i].disparity_px for i in by_id},
-                                    {i: by_id[i].inter_image_depth_mm for i in by_id},
-                                    {i: by_id[i].inter_object_depth_mm for i in by_id})
+        layers = multi_plane_images(
+            sharp,
+            labels16,
+            [r.id for r in regions],
+            {i: by_id[i].disparity_px for i in by_id},
+            {i: by_id[i].inter_image_depth_mm for i in by_id},
+            {i: by_id[i].inter_object_depth_mm for i in by_id},
+        )
         recorder.record("mpi", layers=layers)
     timer.timings["total"] = time.perf_counter() - total_start
-    return DepthResult(labels=labels16, disparity_px=model_in, raw_disparity_px=raw_in,
-                       confidence=confidence_full, depth_mm=depth, all_in_focus=sharp, regions=regions,
-                       focus_region=focus_id, layers=layers, pixel_scale=pixel_scale, timings_s=timer.timings)
+    return DepthResult(
+        labels=labels16,
+        disparity_px=model_in,
+        raw_disparity_px=raw_in,
+        confidence=confidence_full,
+        depth_mm=depth,
+        all_in_focus=sharp,
+        regions=regions,
+        focus_region=focus_id,
+        layers=layers,
+        pixel_scale=pixel_scale,
+        timings_s=timer.timings,
+    )

@@ -1,4 +1,5 @@
 """What the accurate-depth pipeline returns, and the recorder interface its stages report to."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -34,14 +35,14 @@ class NullRecorder:
 class Region:
     """One region of the 2.1D sketch: an object of the scene, with its depth."""
 
-    id: int                                    # label value in `DepthResult.labels` (1..L)
-    pixels: int                                # area in processing pixels
-    order: int                                 # front-to-back rank, 0 = nearest
-    occludes: list[int]                        # ids of regions this one occludes
-    disparity_px: float                        # in input-image pixels, widest filter pair, + = farther
+    id: int  # label value in `DepthResult.labels` (1..L)
+    pixels: int  # area in processing pixels
+    order: int  # front-to-back rank, 0 = nearest
+    occludes: list[int]  # ids of regions this one occludes
+    disparity_px: float  # in input-image pixels, widest filter pair, + = farther
     inter_image_depth_mm: float | None = None  # eq. 2
     inter_object_depth_mm: float | None = None  # eq. 13/14, from the focus plane
-    distance_mm: float | None = None           # from the lens
+    distance_mm: float | None = None  # from the lens
     slant: tuple[float, float, float] | None = None  # disparity plane a*x + b*y + c (input px coordinates)
     in_focus: bool = False
     confidence: float = 0.0
@@ -54,9 +55,16 @@ class MultiPlaneImage:
     display image and label map (`source`), so that L planes do not hold L full-size RGBA copies.
     """
 
-    def __init__(self, region_id: int, rgba: np.ndarray | None, inter_image_depth_mm: float | None,
-                 inter_object_depth_mm: float | None, disparity_px: float, *,
-                 source: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+    def __init__(
+        self,
+        region_id: int,
+        rgba: np.ndarray | None,
+        inter_image_depth_mm: float | None,
+        inter_object_depth_mm: float | None,
+        disparity_px: float,
+        *,
+        source: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> None:
         if rgba is None and source is None:
             raise ValueError("a MultiPlaneImage needs its rgba array or a (display image, labels) source")
         self.region_id = region_id
@@ -88,8 +96,10 @@ class MultiPlaneImage:
         return tuple(self._rgba.shape[:2]) if self._rgba is not None else tuple(self._source[1].shape)  # type: ignore
 
     def __repr__(self) -> str:
-        return (f"MultiPlaneImage(region_id={self.region_id}, shape={self.shape}, "
-                f"inter_object_depth_mm={self.inter_object_depth_mm}, disparity_px={self.disparity_px})")
+        return (
+            f"MultiPlaneImage(region_id={self.region_id}, shape={self.shape}, "
+            f"inter_object_depth_mm={self.inter_object_depth_mm}, disparity_px={self.disparity_px})"
+        )
 
 
 @dataclass
@@ -101,12 +111,12 @@ class DepthResult:
     in input-image pixels.
     """
 
-    labels: np.ndarray                         # (H, W) uint16, 0 = none
-    disparity_px: np.ndarray                   # (H, W) float32, region model, input px
-    raw_disparity_px: np.ndarray               # (H, W) float32, per-pixel estimate, input px
-    confidence: np.ndarray                     # (H, W) float32 in [0, 1]
-    depth_mm: np.ndarray | None                # (H, W) float32 distance from the lens, NaN unknown
-    all_in_focus: np.ndarray                   # (H, W, 3) float32 linear RGB, fringes removed
+    labels: np.ndarray  # (H, W) uint16, 0 = none
+    disparity_px: np.ndarray  # (H, W) float32, region model, input px
+    raw_disparity_px: np.ndarray  # (H, W) float32, per-pixel estimate, input px
+    confidence: np.ndarray  # (H, W) float32 in [0, 1]
+    depth_mm: np.ndarray | None  # (H, W) float32 distance from the lens, NaN unknown
+    all_in_focus: np.ndarray  # (H, W, 3) float32 linear RGB, fringes removed
     regions: list[Region]
     focus_region: int | None
     layers: list[MultiPlaneImage]

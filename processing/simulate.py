@@ -22,13 +22,15 @@ Coordinates: scenes are drawn in frame units, x right and y down, 1 = the frame
 height, so that a scene does not depend on the render size. Pure: arrays and
 parameters in, arrays out.
 """
+
 from __future__ import annotations
 
 import dataclasses
 import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any
 
 import cv2
 import numpy as np
@@ -39,13 +41,12 @@ from mca.processing.optics import MCAOptics
 from mca.processing.textures import Texture, texture_patch
 
 # The Bayer sites of an RGGB mosaic: (name, x offset, y offset, sensor channel index) in each 2x2 block.
-BAYER_SITES: tuple[tuple[str, int, int, int], ...] = (("R", 0, 0, 0), ("G1", 1, 0, 1), ("G2", 0, 1, 1),
-                                                      ("B", 1, 1, 2))
+BAYER_SITES: tuple[tuple[str, int, int, int], ...] = (("R", 0, 0, 0), ("G1", 1, 0, 1), ("G2", 0, 1, 1), ("B", 1, 1, 2))
 # Each filter's image is rendered on the grid of the first site of its own sensor colour.
 _OWN_SITE = {0: "R", 1: "G1", 2: "B"}
 # Centre wavelengths of the three filters, for diffraction.
 WAVELENGTH_MM = {"red": 610e-6, "green": 530e-6, "blue": 460e-6}
-_SLICE_STEP_PX = 0.25       # largest disparity step (full-resolution px) between the slices of a slanted layer
+_SLICE_STEP_PX = 0.25  # largest disparity step (full-resolution px) between the slices of a slanted layer
 
 
 # --- scene description -------------------------------------------------------------------------------------
@@ -61,8 +62,12 @@ class Shape:
     def bounds(self) -> tuple[float, float, float, float]:
         """(x_min, y_min, x_max, y_max) in frame units."""
         points = np.concatenate(self.polygons)
-        return (float(points[:, 0].min()), float(points[:, 1].min()),
-                float(points[:, 0].max()), float(points[:, 1].max()))
+        return (
+            float(points[:, 0].min()),
+            float(points[:, 1].min()),
+            float(points[:, 0].max()),
+            float(points[:, 1].max()),
+        )
 
 
 @dataclass(frozen=True)
@@ -148,7 +153,9 @@ class Scene:
         if len(set(ids)) != len(ids) or any(i <= 0 or i > 65535 for i in ids):
             raise ValueError(f"scene '{self.name}': object ids must be distinct and in 1..65535, got {ids}")
         if any(o.shape is None for o in self.objects):
-            raise ValueError(f"scene '{self.name}': every object needs a shape (only the background may fill the frame)")
+            raise ValueError(
+                f"scene '{self.name}': every object needs a shape (only the background may fill the frame)"
+            )
 
 
 # --- optics and sensor ---------------------------------------------------------------------------------------
@@ -171,7 +178,7 @@ class SimulationOptics:
     anti_alias_sigma_px: float = 0.6
 
     @classmethod
-    def from_profile(cls, profile: CameraProfile, scale: float = 1.0) -> "SimulationOptics":
+    def from_profile(cls, profile: CameraProfile, scale: float = 1.0) -> SimulationOptics:
         """The profile's nominal optics at `scale` times its image size (mosaic dimensions rounded to even)."""
         if profile.lens is None or profile.pixel_pitch_mm is None or not profile.width_px or not profile.height_px:
             raise ValueError(f"profile '{profile.name}' lacks the lens, pixel pitch or image size a simulation needs")
@@ -180,11 +187,13 @@ class SimulationOptics:
         width = max(2, 2 * int(round(profile.width_px * scale / 2)))
         height = max(2, 2 * int(round(profile.height_px * scale / 2)))
         pitch = profile.pixel_pitch_mm * profile.height_px / height
-        return cls(profile.lens.focal_length_mm, profile.lens.sensor_distance_mm, pitch, profile.aperture,
-                   width, height)
+        return cls(
+            profile.lens.focal_length_mm, profile.lens.sensor_distance_mm, pitch, profile.aperture, width, height
+        )
 
-    def perturbed(self, *, focal_length_factor: float = 1.0, sensor_distance_factor: float = 1.0,
-                  baseline_factor: float = 1.0) -> "SimulationOptics":
+    def perturbed(
+        self, *, focal_length_factor: float = 1.0, sensor_distance_factor: float = 1.0, baseline_factor: float = 1.0
+    ) -> SimulationOptics:
         """A lens that deviates from this one: focal length, d_ls and filter positions scaled by the factors."""
         ap = self.aperture
         scaled = dataclasses.replace(
@@ -193,14 +202,16 @@ class SimulationOptics:
             green_mm=(ap.green_mm[0] * baseline_factor, ap.green_mm[1] * baseline_factor),
             blue_mm=(ap.blue_mm[0] * baseline_factor, ap.blue_mm[1] * baseline_factor),
         )
-        return dataclasses.replace(self, focal_length_mm=self.focal_length_mm * focal_length_factor,
-                                   sensor_distance_mm=self.sensor_distance_mm * sensor_distance_factor,
-                                   aperture=scaled)
+        return dataclasses.replace(
+            self,
+            focal_length_mm=self.focal_length_mm * focal_length_factor,
+            sensor_distance_mm=self.sensor_distance_mm * sensor_distance_factor,
+            aperture=scaled,
+        )
 
     @property
     def mca(self) -> MCAOptics:
-        return MCAOptics(self.focal_length_mm, self.sensor_distance_mm, self.aperture.baseline_mm,
-                         self.pixel_pitch_mm)
+        return MCAOptics(self.focal_length_mm, self.sensor_distance_mm, self.aperture.baseline_mm, self.pixel_pitch_mm)
 
     @property
     def focus_distance_mm(self) -> float:
@@ -281,8 +292,9 @@ class Rendering:
 # --- rasterising ----------------------------------------------------------------------------------------------
 
 
-def rasterize(shape: Shape, frame_height_px: float, origin_px: tuple[int, int], size: tuple[int, int],
-              offset_px: float = -0.5) -> np.ndarray:
+def rasterize(
+    shape: Shape, frame_height_px: float, origin_px: tuple[int, int], size: tuple[int, int], offset_px: float = -0.5
+) -> np.ndarray:
     """Anti-aliased coverage (float32 in [0, 1], `size` = (h, w)) of `shape` on a pixel raster.
 
     A point (x, y) in frame units lies at pixel x * frame_height_px + offset_px (pixel centres are
@@ -299,8 +311,9 @@ def rasterize(shape: Shape, frame_height_px: float, origin_px: tuple[int, int], 
     return mask.astype(np.float32) * (1.0 / 255.0)
 
 
-def _pixel_bounds(shape: Shape, frame_height_px: float, offset_px: float, margin_px: float,
-                  limit: tuple[int, int]) -> tuple[int, int, int, int]:
+def _pixel_bounds(
+    shape: Shape, frame_height_px: float, offset_px: float, margin_px: float, limit: tuple[int, int]
+) -> tuple[int, int, int, int]:
     x0, y0, x1, y1 = shape.bounds
     left = max(0, int(math.floor(x0 * frame_height_px + offset_px - margin_px)))
     top = max(0, int(math.floor(y0 * frame_height_px + offset_px - margin_px)))
@@ -332,20 +345,28 @@ class _Spectra:
     callers keep a margin wider than the largest shift plus blur radius.
     """
 
-    _MARGIN = 16    # mirrored border around the input, so that the periodic wrap sees no step
+    _MARGIN = 16  # mirrored border around the input, so that the periodic wrap sees no step
 
     def __init__(self, shape: tuple[int, int]) -> None:
         self.shape = shape
         m = 2 * self._MARGIN
-        self.fft_shape = (scipy.fft.next_fast_len(shape[0] + m, real=True),
-                          scipy.fft.next_fast_len(shape[1] + m, real=True))
+        self.fft_shape = (
+            scipy.fft.next_fast_len(shape[0] + m, real=True),
+            scipy.fft.next_fast_len(shape[1] + m, real=True),
+        )
         self.freq_y = np.fft.fftfreq(self.fft_shape[0]).astype(np.float32)
         self.freq_x = np.fft.rfftfreq(self.fft_shape[1]).astype(np.float32)
 
     def forward(self, image: np.ndarray) -> np.ndarray:
         m = self._MARGIN
-        padded = cv2.copyMakeBorder(image.astype(np.float32, copy=False), m, self.fft_shape[0] - self.shape[0] - m,
-                                    m, self.fft_shape[1] - self.shape[1] - m, cv2.BORDER_REFLECT_101)
+        padded = cv2.copyMakeBorder(
+            image.astype(np.float32, copy=False),
+            m,
+            self.fft_shape[0] - self.shape[0] - m,
+            m,
+            self.fft_shape[1] - self.shape[1] - m,
+            cv2.BORDER_REFLECT_101,
+        )
         return scipy.fft.rfft2(padded, workers=-1)
 
     def disk_otf(self, blur_diameter_px: float) -> np.ndarray | None:
@@ -354,8 +375,8 @@ class _Spectra:
             return None
         half = kernel.shape[0] // 2
         embedded = np.zeros(self.fft_shape, np.float32)
-        embedded[:kernel.shape[0], :kernel.shape[1]] = kernel
-        embedded = np.roll(embedded, (-half, -half), axis=(0, 1))        # centre the kernel on pixel (0, 0)
+        embedded[: kernel.shape[0], : kernel.shape[1]] = kernel
+        embedded = np.roll(embedded, (-half, -half), axis=(0, 1))  # centre the kernel on pixel (0, 0)
         return scipy.fft.rfft2(embedded, workers=-1).real.astype(np.float32)
 
     def gaussian_otf(self, sigma_px: float) -> np.ndarray:
@@ -373,7 +394,7 @@ class _Spectra:
             product *= otf
         out = scipy.fft.irfft2(product, s=self.fft_shape, workers=-1)
         m = self._MARGIN
-        return out[m:m + self.shape[0], m:m + self.shape[1]]
+        return out[m : m + self.shape[0], m : m + self.shape[1]]
 
 
 def shift_image(image: np.ndarray, shift_px: tuple[float, float], blur_diameter_px: float = 0.0) -> np.ndarray:
@@ -404,17 +425,27 @@ def _slices(layer: Layer, optics: SimulationOptics) -> list[tuple[float, float |
 def _render_filter_images(scene: Scene, optics: SimulationOptics, cosited: bool) -> list[np.ndarray]:
     """The composite image through each filter (red, green, blue), each sampled on its own colour's Bayer grid."""
     plane_h, plane_w = optics.height_px // 2, optics.width_px // 2
-    frame_h = float(plane_h)                       # plane pixels per frame unit
+    frame_h = float(plane_h)  # plane pixels per frame unit
     sites = _site_offsets_px(cosited)
     layers = ([scene.background] if scene.background is not None else []) + sorted(
-        scene.objects, key=lambda o: -o.distance_mm)
+        scene.objects, key=lambda o: -o.distance_mm
+    )
     all_distances = [d for layer in layers for d in layer.distance_range_mm]
     sharpness_px = 3.0 * max(optics.sharpness_sigma_px(c) for c in CHANNELS) / 2.0
-    reach = max(max(abs(optics.disparity_px(d)) * 0.5 * math.hypot(*optics.aperture.shift_per_disparity(c))
-                    for c in CHANNELS) + optics.blur_diameter_px(d) / 4.0 for d in all_distances) + sharpness_px
+    reach = (
+        max(
+            max(
+                abs(optics.disparity_px(d)) * 0.5 * math.hypot(*optics.aperture.shift_per_disparity(c))
+                for c in CHANNELS
+            )
+            + optics.blur_diameter_px(d) / 4.0
+            for d in all_distances
+        )
+        + sharpness_px
+    )
     pad = int(math.ceil(reach)) + 4
     padded = (plane_h + 2 * pad, plane_w + 2 * pad)
-    offset_px = pad - 0.5                          # frame x -> padded plane pixel: x * frame_h + offset_px
+    offset_px = pad - 0.5  # frame x -> padded plane pixel: x * frame_h + offset_px
     composite = [np.zeros(padded, np.float32) for _ in CHANNELS]
 
     for layer in layers:
@@ -433,7 +464,7 @@ def _render_filter_images(scene: Scene, optics: SimulationOptics, cosited: bool)
         step = 1.0
         if len(slices) > 1:
             positions = np.array([p for _, p in slices])
-            step = float(positions[1] - positions[0]) * frame_h          # slice spacing, plane px
+            step = float(positions[1] - positions[0]) * frame_h  # slice spacing, plane px
         for distance, position in slices:
             weight = alpha
             x0, y0, x1, y1 = 0, 0, alpha.shape[1], alpha.shape[0]
@@ -457,7 +488,7 @@ def _render_filter_images(scene: Scene, optics: SimulationOptics, cosited: bool)
             if not w.any():
                 continue
             spectra = _Spectra(w.shape)
-            opaque = layer.shape is None                  # a background covers everything: coverage stays 1
+            opaque = layer.shape is None  # a background covers everything: coverage stays 1
             coverage_spectrum = None if opaque else spectra.forward(w)
             texture_spectrum = spectra.forward(w * modulation[y0:y1, x0:x1])
             disk = spectra.disk_otf(optics.blur_diameter_px(distance) / 2.0)
@@ -479,11 +510,12 @@ def _render_filter_images(scene: Scene, optics: SimulationOptics, cosited: bool)
             premultiplied, coverage = accumulated[index][..., 0], accumulated[index][..., 1]
             region *= 1.0 - np.clip(coverage, 0.0, 1.0)
             region += premultiplied
-    return [np.maximum(c[pad:pad + plane_h, pad:pad + plane_w], 0.0) for c in composite]
+    return [np.maximum(c[pad : pad + plane_h, pad : pad + plane_w], 0.0) for c in composite]
 
 
-def _sensor_sites(filter_images: Sequence[np.ndarray], crosstalk: np.ndarray | None,
-                  cosited: bool) -> dict[str, np.ndarray]:
+def _sensor_sites(
+    filter_images: Sequence[np.ndarray], crosstalk: np.ndarray | None, cosited: bool
+) -> dict[str, np.ndarray]:
     """The signal at each Bayer site: filter images moved to the site's grid and mixed by the crosstalk matrix."""
     sites = _site_offsets_px(cosited)
     values = {}
@@ -520,7 +552,7 @@ def _expose(signal: np.ndarray, sensor: SensorModel, rng: np.random.Generator) -
         dn = sensor.black_level + signal.astype(np.float32) * np.float32(span)
     else:
         electrons = np.maximum(signal, 0.0).astype(np.float32) * np.float32(sensor.saturation_e)
-        sigma = np.sqrt(electrons + np.float32(sensor.read_noise_e ** 2))
+        sigma = np.sqrt(electrons + np.float32(sensor.read_noise_e**2))
         noisy = electrons + sigma * rng.standard_normal(electrons.shape, dtype=np.float32)
         low = electrons < 50.0
         if low.any():
@@ -533,8 +565,14 @@ def _expose(signal: np.ndarray, sensor: SensorModel, rng: np.random.Generator) -
     return dn.astype(np.uint16)
 
 
-def render(scene: Scene, optics: SimulationOptics, sensor: SensorModel = SensorModel(), *, seed: int | None = 0,
-           cosited: bool = False) -> Rendering:
+def render(
+    scene: Scene,
+    optics: SimulationOptics,
+    sensor: SensorModel = SensorModel(),
+    *,
+    seed: int | None = 0,
+    cosited: bool = False,
+) -> Rendering:
     """Simulate one MCA photograph of `scene` through `optics` on `sensor`.
 
     `cosited=True` samples every colour at the centre of its 2x2 block instead of at its Bayer
@@ -552,19 +590,27 @@ def render(scene: Scene, optics: SimulationOptics, sensor: SensorModel = SensorM
         mosaic[dy::2, dx::2] = _expose(values[name] * scale, sensor, rng)
     depth_mm, labels, masks = truth_rasters(scene, optics)
     truth = scene_truth(scene, optics, labels, masks)
-    truth["sensor"] = {"black_level": sensor.black_level, "white_level": sensor.white_level,
-                       "iso": sensor.iso, "exposure": sensor.exposure, "noise": sensor.noise,
-                       "cfa": "RGGB", "cosited": cosited}
+    truth["sensor"] = {
+        "black_level": sensor.black_level,
+        "white_level": sensor.white_level,
+        "iso": sensor.iso,
+        "exposure": sensor.exposure,
+        "noise": sensor.noise,
+        "cfa": "RGGB",
+        "cosited": cosited,
+    }
     truth["seed"] = seed
-    return Rendering(mosaic=mosaic, planes_linear=np.clip(planes, 0.0, 1.0), depth_mm=depth_mm, labels=labels,
-                     truth=truth)
+    return Rendering(
+        mosaic=mosaic, planes_linear=np.clip(planes, 0.0, 1.0), depth_mm=depth_mm, labels=labels, truth=truth
+    )
 
 
 # --- ground truth ---------------------------------------------------------------------------------------------
 
 
-def truth_rasters(scene: Scene, optics: SimulationOptics
-                  ) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[tuple[int, int, int, int], np.ndarray]]]:
+def truth_rasters(
+    scene: Scene, optics: SimulationOptics
+) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[tuple[int, int, int, int], np.ndarray]]]:
     """Per full-resolution pixel: distance of the front-most surface (mm, float32) and its object id (uint16).
 
     Also returns each object's binary mask in its bounding box: {id: ((left, top, right, bottom), mask)}.
@@ -586,7 +632,7 @@ def truth_rasters(scene: Scene, optics: SimulationOptics
         if layer.slant is None:
             surface = np.float32(layer.distance_mm)
         else:
-            along = (np.arange(left, right) if layer.slant.axis == "x" else np.arange(top, bottom))
+            along = np.arange(left, right) if layer.slant.axis == "x" else np.arange(top, bottom)
             ramp = np.asarray(layer.distance_at_mm((along + 0.5) / frame_h), np.float32)
             surface = ramp[None, :] if layer.slant.axis == "x" else ramp[:, None]
         surface = np.broadcast_to(surface, mask.shape)
@@ -598,8 +644,12 @@ def truth_rasters(scene: Scene, optics: SimulationOptics
     return depth, labels, masks
 
 
-def scene_truth(scene: Scene, optics: SimulationOptics, labels: np.ndarray,
-                masks: dict[int, tuple[tuple[int, int, int, int], np.ndarray]]) -> dict[str, Any]:
+def scene_truth(
+    scene: Scene,
+    optics: SimulationOptics,
+    labels: np.ndarray,
+    masks: dict[int, tuple[tuple[int, int, int, int], np.ndarray]],
+) -> dict[str, Any]:
     """The JSON-ready ground truth of a rendering: objects with distances, disparities, occlusions and order."""
     focus = optics.focus_distance_mm
     occluders: dict[int, set[int]] = {o.id: set() for o in scene.objects}
@@ -620,45 +670,62 @@ def scene_truth(scene: Scene, optics: SimulationOptics, labels: np.ndarray,
         slant = None
         if layer.slant is not None:
             low, high = layer._extent()
-            slant = {"from_mm": layer.slant.from_mm, "to_mm": layer.slant.to_mm, "axis": layer.slant.axis,
-                     "from_inter_object_depth_mm": layer.slant.from_mm - focus,
-                     "to_inter_object_depth_mm": layer.slant.to_mm - focus,
-                     "from_disparity_px": optics.disparity_px(layer.slant.from_mm),
-                     "to_disparity_px": optics.disparity_px(layer.slant.to_mm),
-                     # where from_mm and to_mm hold: the ends of the extent along the axis, mosaic pixel
-                     # coordinates; in between 1/distance and the disparity are affine (a plane)
-                     "extent_px": [low * optics.height_px - 0.5, high * optics.height_px - 0.5],
-                     "model": "plane"}
+            slant = {
+                "from_mm": layer.slant.from_mm,
+                "to_mm": layer.slant.to_mm,
+                "axis": layer.slant.axis,
+                "from_inter_object_depth_mm": layer.slant.from_mm - focus,
+                "to_inter_object_depth_mm": layer.slant.to_mm - focus,
+                "from_disparity_px": optics.disparity_px(layer.slant.from_mm),
+                "to_disparity_px": optics.disparity_px(layer.slant.to_mm),
+                # where from_mm and to_mm hold: the ends of the extent along the axis, mosaic pixel
+                # coordinates; in between 1/distance and the disparity are affine (a plane)
+                "extent_px": [low * optics.height_px - 0.5, high * optics.height_px - 0.5],
+                "model": "plane",
+            }
         estimate = optics.mca.from_distance(layer.distance_mm)
-        objects.append({
-            "id": layer.id,
-            "name": layer.name,
-            "paper_label": layer.paper_label,
-            "colour": layer.colour,
-            "distance_mm": layer.distance_mm,
-            "inter_object_depth_mm": layer.distance_mm - focus,
-            "inter_image_depth_mm": estimate.inter_image_depth_mm,
-            "disparity_px": optics.disparity_px(layer.distance_mm),
-            "blur_diameter_px": optics.blur_diameter_px(layer.distance_mm),
-            "slant": slant,
-            "occludes": sorted(occluders[layer.id]),
-            "order": distinct.index(round(layer.distance_mm, 6)),
-            "visible_px": visible[layer.id],
-        })
+        objects.append(
+            {
+                "id": layer.id,
+                "name": layer.name,
+                "paper_label": layer.paper_label,
+                "colour": layer.colour,
+                "distance_mm": layer.distance_mm,
+                "inter_object_depth_mm": layer.distance_mm - focus,
+                "inter_image_depth_mm": estimate.inter_image_depth_mm,
+                "disparity_px": optics.disparity_px(layer.distance_mm),
+                "blur_diameter_px": optics.blur_diameter_px(layer.distance_mm),
+                "slant": slant,
+                "occludes": sorted(occluders[layer.id]),
+                "order": distinct.index(round(layer.distance_mm, 6)),
+                "visible_px": visible[layer.id],
+            }
+        )
     background = None
     if scene.background is not None:
         b = scene.background
-        background = {"id": 0, "name": b.name, "colour": b.colour, "distance_mm": b.distance_mm,
-                      "inter_object_depth_mm": b.distance_mm - focus, "disparity_px": optics.disparity_px(b.distance_mm)}
+        background = {
+            "id": 0,
+            "name": b.name,
+            "colour": b.colour,
+            "distance_mm": b.distance_mm,
+            "inter_object_depth_mm": b.distance_mm - focus,
+            "disparity_px": optics.disparity_px(b.distance_mm),
+        }
     return {
         "scene": scene.name,
         "description": scene.description,
         "focus_distance_mm": focus,
-        "optics": {"focal_length_mm": optics.focal_length_mm, "sensor_distance_mm": optics.sensor_distance_mm,
-                   "pixel_pitch_mm": optics.pixel_pitch_mm, "filter_centre_distance_mm": optics.aperture.baseline_mm,
-                   "widest_pair": list(optics.aperture.widest_pair),
-                   "filter_diameter_mm": optics.aperture.filter_diameter_mm,
-                   "width_px": optics.width_px, "height_px": optics.height_px},
+        "optics": {
+            "focal_length_mm": optics.focal_length_mm,
+            "sensor_distance_mm": optics.sensor_distance_mm,
+            "pixel_pitch_mm": optics.pixel_pitch_mm,
+            "filter_centre_distance_mm": optics.aperture.baseline_mm,
+            "widest_pair": list(optics.aperture.widest_pair),
+            "filter_diameter_mm": optics.aperture.filter_diameter_mm,
+            "width_px": optics.width_px,
+            "height_px": optics.height_px,
+        },
         "objects": objects,
         "background": background,
     }

@@ -15,6 +15,7 @@ Steps, all on the analysis grid:
    measured on the boundary follows the occluder's) is recorded as evidence. The order
    ranks regions by disparity, 0 = nearest.
 """
+
 from __future__ import annotations
 
 import heapq
@@ -31,20 +32,20 @@ from mca.processing.disparity import DisparityMap, parallel_map, warp_channels
 class SketchParams:
     """Parameters of the decomposition; lengths in analysis-grid pixels."""
 
-    superpixel_px: int = 14                 # typical superpixel side (on grids up to 0.3 MP; grows beyond)
+    superpixel_px: int = 14  # typical superpixel side (on grids up to 0.3 MP; grows beyond)
     slic_compactness: float = 1.0
-    disparity_weight: float = 0.6           # SLIC feature units per pixel of disparity
-    chroma_threshold: float = 0.045         # chromaticity distance that separates two colours
-    luminance_threshold: float = 1.5        # |log luminance| difference that separates two colours
-    disparity_threshold_px: float = 0.7     # disparity step at a shared boundary that separates two objects
-    min_region_fraction: float = 0.015      # smaller regions are absorbed by a neighbour
-    sliver_thickness_px: float = 6.0        # thinner regions (2 area / perimeter) are rims, absorbed too ...
-    sliver_max_fraction: float = 0.04       # ... up to this size
-    join_disparity_px: float = 1.0          # pieces of one surface seen on both sides of an occluder: models
-                                            # agreeing this well (each at the other's centroid) are joined
-    slant_min_span_px: float = 1.2          # a plane is kept only if it spans at least this much disparity
-    slant_min_gain: float = 0.5             # ... and explains this fraction of the constant model's residual
-    focus_tolerance_px: float = 0.6         # |disparity| below which a region counts as in focus
+    disparity_weight: float = 0.6  # SLIC feature units per pixel of disparity
+    chroma_threshold: float = 0.045  # chromaticity distance that separates two colours
+    luminance_threshold: float = 1.5  # |log luminance| difference that separates two colours
+    disparity_threshold_px: float = 0.7  # disparity step at a shared boundary that separates two objects
+    min_region_fraction: float = 0.015  # smaller regions are absorbed by a neighbour
+    sliver_thickness_px: float = 6.0  # thinner regions (2 area / perimeter) are rims, absorbed too ...
+    sliver_max_fraction: float = 0.04  # ... up to this size
+    join_disparity_px: float = 1.0  # pieces of one surface seen on both sides of an occluder: models
+    # agreeing this well (each at the other's centroid) are joined
+    slant_min_span_px: float = 1.2  # a plane is kept only if it spans at least this much disparity
+    slant_min_gain: float = 0.5  # ... and explains this fraction of the constant model's residual
+    focus_tolerance_px: float = 0.6  # |disparity| below which a region counts as in focus
 
 
 @dataclass
@@ -54,10 +55,10 @@ class SketchRegion:
     id: int
     pixels: int
     centroid_xy: tuple[float, float]
-    plane: tuple[float, float, float]       # disparity = a x + b y + c (analysis px, analysis coordinates)
+    plane: tuple[float, float, float]  # disparity = a x + b y + c (analysis px, analysis coordinates)
     slanted: bool
     confidence: float
-    colour: tuple[float, float, float]      # mean linear RGB of the re-aligned image
+    colour: tuple[float, float, float]  # mean linear RGB of the re-aligned image
 
     def disparity_at(self, x: float | np.ndarray, y: float | np.ndarray) -> float | np.ndarray:
         a, b, c = self.plane
@@ -72,13 +73,13 @@ class SketchRegion:
 class Sketch:
     """The 2.1D sketch: labels 1..L, regions, occlusion pairs and front-to-back order (0 = nearest)."""
 
-    labels: np.ndarray                      # (H, W) int32, 1..L
+    labels: np.ndarray  # (H, W) int32, 1..L
     regions: list[SketchRegion]
-    occludes: dict[int, list[int]]          # id -> ids it occludes (touching and behind it)
+    occludes: dict[int, list[int]]  # id -> ids it occludes (touching and behind it)
     ownership: dict[tuple[int, int], float]  # (front, back) -> fraction of boundary evidence agreeing
-    order: dict[int, int]                   # id -> rank, 0 = nearest
+    order: dict[int, int]  # id -> rank, 0 = nearest
     focus_region: int | None
-    aligned: np.ndarray                     # (H, W, 3) re-aligned planes the segmentation used
+    aligned: np.ndarray  # (H, W, 3) re-aligned planes the segmentation used
     superpixels: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.int32))
 
     def region(self, region_id: int) -> SketchRegion:
@@ -104,8 +105,7 @@ def _colour_features(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return chroma.astype(np.float32), log_lum.astype(np.float32)
 
 
-def weighted_median_by_label(labels: np.ndarray, values: np.ndarray, weights: np.ndarray,
-                             count: int) -> np.ndarray:
+def weighted_median_by_label(labels: np.ndarray, values: np.ndarray, weights: np.ndarray, count: int) -> np.ndarray:
     """Weighted median of `values` in each label 0..count-1 (NaN for empty labels)."""
     flat_l = labels.ravel()
     flat_v = values.ravel().astype(np.float64)
@@ -157,10 +157,11 @@ class _Stats:
     once per node: the greedy merge evaluates the cost of every edge of a grown region again.
     """
 
-    __slots__ = ("pixels", "r", "g", "b", "log_lum", "sums", "count", "cr", "cg", "mean_lum", "plane_")
+    __slots__ = ("b", "cg", "count", "cr", "g", "log_lum", "mean_lum", "pixels", "plane_", "r", "sums")
 
-    def __init__(self, pixels: float, rgb: tuple[float, float, float], log_lum: float,
-                 sums: tuple[float, ...], count: int) -> None:
+    def __init__(
+        self, pixels: float, rgb: tuple[float, float, float], log_lum: float, sums: tuple[float, ...], count: int
+    ) -> None:
         self.pixels, self.log_lum, self.sums, self.count = pixels, log_lum, sums, count
         self.r, self.g, self.b = rgb
         total = self.r + self.g + self.b + 1e-9
@@ -168,10 +169,14 @@ class _Stats:
         self.mean_lum = log_lum / max(pixels, 1.0)
         self.plane_ = self.plane(40.0 / max(count, 1) ** 0.5)
 
-    def merged(self, other: "_Stats") -> "_Stats":
-        return _Stats(self.pixels + other.pixels, (self.r + other.r, self.g + other.g, self.b + other.b),
-                      self.log_lum + other.log_lum, tuple(u + v for u, v in zip(self.sums, other.sums)),
-                      self.count + other.count)
+    def merged(self, other: _Stats) -> _Stats:
+        return _Stats(
+            self.pixels + other.pixels,
+            (self.r + other.r, self.g + other.g, self.b + other.b),
+            self.log_lum + other.log_lum,
+            tuple(u + v for u, v in zip(self.sums, other.sums)),
+            self.count + other.count,
+        )
 
     @property
     def sw(self) -> float:
@@ -183,8 +188,8 @@ class _Stats:
         if sw <= 0:
             return (0.0, 0.0, 0.0)
         mx, my, md = sx / sw, sy / sw, sd / sw
-        cxx = sxx / sw - mx * mx + ridge_px ** 2
-        cyy = syy / sw - my * my + ridge_px ** 2
+        cxx = sxx / sw - mx * mx + ridge_px**2
+        cyy = syy / sw - my * my + ridge_px**2
         cxy = sxy / sw - mx * my
         cxd = sxd / sw - mx * md
         cyd = syd / sw - my * md
@@ -196,8 +201,14 @@ class _Stats:
         return (a, b, md - a * mx - b * my)
 
 
-def _superpixel_stats(superpixels: np.ndarray, count: int, aligned: np.ndarray, log_lum: np.ndarray,
-                      disparity: np.ndarray, confidence: np.ndarray) -> list[_Stats]:
+def _superpixel_stats(
+    superpixels: np.ndarray,
+    count: int,
+    aligned: np.ndarray,
+    log_lum: np.ndarray,
+    disparity: np.ndarray,
+    confidence: np.ndarray,
+) -> list[_Stats]:
     flat = superpixels.ravel()
     pixels = np.bincount(flat, minlength=count).astype(np.float64)
     rgb = np.stack([np.bincount(flat, weights=aligned[..., c].ravel(), minlength=count) for c in range(3)], axis=1)
@@ -208,14 +219,16 @@ def _superpixel_stats(superpixels: np.ndarray, count: int, aligned: np.ndarray, 
     ys = np.broadcast_to(np.arange(height, dtype=np.float64)[:, None], (height, width)).ravel()
     cx = np.bincount(flat, weights=xs, minlength=count) / safe
     cy = np.bincount(flat, weights=ys, minlength=count) / safe
-    step = 2 if superpixels.size > 300_000 else 1             # every 4th pixel is plenty for a median
-    d = weighted_median_by_label(superpixels[::step, ::step], disparity[::step, ::step],
-                                 confidence[::step, ::step], count)
+    step = 2 if superpixels.size > 300_000 else 1  # every 4th pixel is plenty for a median
+    d = weighted_median_by_label(
+        superpixels[::step, ::step], disparity[::step, ::step], confidence[::step, ::step], count
+    )
     conf = np.bincount(flat, weights=confidence.ravel(), minlength=count)
     w = np.where(np.isfinite(d), conf, 0.0)
     d = np.where(np.isfinite(d), d, 0.0)
-    sums = np.stack([w, w * cx, w * cy, w * d, w * cx * cx, w * cy * cy, w * cx * cy, w * cx * d, w * cy * d,
-                     w * d * d], axis=1).tolist()
+    sums = np.stack(
+        [w, w * cx, w * cy, w * d, w * cx * cx, w * cy * cy, w * cx * cy, w * cx * d, w * cy * d, w * d * d], axis=1
+    ).tolist()
     rgb_l, pixels_l, lum_l = rgb.tolist(), pixels.tolist(), lum.tolist()
     return [_Stats(pixels_l[i], tuple(rgb_l[i]), lum_l[i], tuple(sums[i]), 1) for i in range(count)]
 
@@ -223,8 +236,9 @@ def _superpixel_stats(superpixels: np.ndarray, count: int, aligned: np.ndarray, 
 # --- the sketch -------------------------------------------------------------------------------------------------
 
 
-def build_sketch(planes: np.ndarray, aperture: FilterAperture, disparity: DisparityMap,
-                 params: SketchParams = SketchParams()) -> Sketch:
+def build_sketch(
+    planes: np.ndarray, aperture: FilterAperture, disparity: DisparityMap, params: SketchParams = SketchParams()
+) -> Sketch:
     """Decompose the analysis-grid `planes` into the regions of a 2.1D sketch (see the module docstring)."""
     from skimage.segmentation import slic
 
@@ -235,15 +249,24 @@ def build_sketch(planes: np.ndarray, aperture: FilterAperture, disparity: Dispar
 
     # 2. superpixels in (chromaticity, log luminance, disparity)
     lum_scale = 0.05
-    features = np.dstack([chroma / params.chroma_threshold, log_lum * (lum_scale / 0.05) * 0.5,
-                          smooth * params.disparity_weight]).astype(np.float32)
-    side = params.superpixel_px * max(1.0, (height * width / 300_000) ** 0.5)   # fewer, larger ones on big grids
-    n_segments = max(16, int(height * width / side ** 2))
+    features = np.dstack(
+        [chroma / params.chroma_threshold, log_lum * (lum_scale / 0.05) * 0.5, smooth * params.disparity_weight]
+    ).astype(np.float32)
+    side = params.superpixel_px * max(1.0, (height * width / 300_000) ** 0.5)  # fewer, larger ones on big grids
+    n_segments = max(16, int(height * width / side**2))
     # SLIC's own pre-smoothing (sigma 0.5, reflect) done by OpenCV: the same 5-tap kernel, several times faster
     features = cv2.GaussianBlur(features, (5, 5), 0.5, borderType=cv2.BORDER_REFLECT)
-    superpixels = slic(features, n_segments=n_segments, compactness=params.slic_compactness, start_label=0,
-                       channel_axis=-1, enforce_connectivity=True, convert2lab=False, sigma=0,
-                       max_num_iter=6)                     # the merge that follows forgives a rougher start
+    superpixels = slic(
+        features,
+        n_segments=n_segments,
+        compactness=params.slic_compactness,
+        start_label=0,
+        channel_axis=-1,
+        enforce_connectivity=True,
+        convert2lab=False,
+        sigma=0,
+        max_num_iter=6,
+    )  # the merge that follows forgives a rougher start
     superpixels = superpixels.astype(np.int32)
     count = int(superpixels.max()) + 1
 
@@ -267,8 +290,9 @@ def build_sketch(planes: np.ndarray, aperture: FilterAperture, disparity: Dispar
     return Sketch(labels, regions, occludes, ownership, order, focus_id, aligned, superpixels)
 
 
-def _join_across_occluders(labels: np.ndarray, regions: list[SketchRegion], occludes: dict[int, list[int]],
-                           params: SketchParams) -> np.ndarray | None:
+def _join_across_occluders(
+    labels: np.ndarray, regions: list[SketchRegion], occludes: dict[int, list[int]], params: SketchParams
+) -> np.ndarray | None:
     """One surface cut in two by an object in front of it (a spatula behind a carrot, a slanted knife behind a
     carrot) is one region of the 2.1D sketch: join regions that do not touch, are both occluded by the same
     region, have the same colour and whose disparity models agree. Returns new labels, or None if none joined."""
@@ -289,18 +313,22 @@ def _join_across_occluders(labels: np.ndarray, regions: list[SketchRegion], occl
         return float(np.log(sum(r.colour) / 3.0 + 1e-3))
 
     joined = False
-    for front, backs in occludes.items():
+    for _front, backs in occludes.items():
         for i, a in enumerate(backs):
-            for b in backs[i + 1:]:
+            for b in backs[i + 1 :]:
                 if (min(a, b), max(a, b)) in touching or root(a) == root(b):
                     continue
                 ra, rb = by_id[a], by_id[b]
-                if np.linalg.norm(chroma(ra) - chroma(rb)) > params.chroma_threshold or \
-                        abs(lum(ra) - lum(rb)) > params.luminance_threshold:
+                if (
+                    np.linalg.norm(chroma(ra) - chroma(rb)) > params.chroma_threshold
+                    or abs(lum(ra) - lum(rb)) > params.luminance_threshold
+                ):
                     continue
                 # one model explaining the other piece is enough (a slanted piece predicts a constant one)
-                gap = min(abs(ra.disparity_at(*rb.centroid_xy) - rb.disparity_px),
-                          abs(rb.disparity_at(*ra.centroid_xy) - ra.disparity_px))
+                gap = min(
+                    abs(ra.disparity_at(*rb.centroid_xy) - rb.disparity_px),
+                    abs(rb.disparity_at(*ra.centroid_xy) - ra.disparity_px),
+                )
                 if gap < params.join_disparity_px:
                     parent[root(b)] = root(a)
                     joined = True
@@ -314,8 +342,7 @@ def _join_across_occluders(labels: np.ndarray, regions: list[SketchRegion], occl
     return lookup[labels]
 
 
-def _merge_cost(a: _Stats, b: _Stats, boundary_xy: tuple[float, float], params: SketchParams
-                ) -> float:
+def _merge_cost(a: _Stats, b: _Stats, boundary_xy: tuple[float, float], params: SketchParams) -> float:
     """Largest of the colour and disparity distances, each in units of its threshold (merge when < 1)."""
     chroma = ((a.cr - b.cr) ** 2 + (a.cg - b.cg) ** 2) ** 0.5 / params.chroma_threshold
     lum = abs(a.mean_lum - b.mean_lum) / params.luminance_threshold
@@ -330,15 +357,22 @@ def _merge_cost(a: _Stats, b: _Stats, boundary_xy: tuple[float, float], params: 
     return max(chroma, lum, disparity)
 
 
-def _merge(stats: list[_Stats], edges: dict[tuple[int, int], int], superpixels: np.ndarray,
-           params: SketchParams, total_pixels: int) -> np.ndarray:
+def _merge(
+    stats: list[_Stats],
+    edges: dict[tuple[int, int], int],
+    superpixels: np.ndarray,
+    params: SketchParams,
+    total_pixels: int,
+) -> np.ndarray:
     """Greedy agglomeration of superpixels; returns the region index of each superpixel."""
     count = len(stats)
-    height, width = superpixels.shape
+    _height, _width = superpixels.shape
     # boundary midpoints of superpixel pairs (sums of x, y and the number of pixel edges per pair)
     keys, mx, my = [], [], []
-    for a_img, b_img, dx, dy in ((superpixels[:, :-1], superpixels[:, 1:], 0.5, 0.0),
-                                 (superpixels[:-1, :], superpixels[1:, :], 0.0, 0.5)):
+    for a_img, b_img, dx, dy in (
+        (superpixels[:, :-1], superpixels[:, 1:], 0.5, 0.0),
+        (superpixels[:-1, :], superpixels[1:, :], 0.0, 0.5),
+    ):
         diff = a_img != b_img
         ys_, xs_ = np.nonzero(diff)
         lo = np.minimum(a_img[diff], b_img[diff]).astype(np.int64)
@@ -360,8 +394,9 @@ def _merge(stats: list[_Stats], edges: dict[tuple[int, int], int], superpixels: 
     version = [0] * count
     heap: list[tuple[float, int, int, int, int]] = []
     # per-node values of `_merge_cost` as arrays, so that all edges of a node are priced at once
-    feats = np.array([(st.cr, st.cg, st.mean_lum) + tuple(st.plane_) + (1.0 if st.sums[0] > 0 else 0.0,)
-                      for st in stats], np.float64).reshape(count, 7)
+    feats = np.array(
+        [(st.cr, st.cg, st.mean_lum) + tuple(st.plane_) + (1.0 if st.sums[0] > 0 else 0.0,) for st in stats], np.float64
+    ).reshape(count, 7)
 
     def costs(a: int, others: np.ndarray, entries: np.ndarray) -> np.ndarray:
         """`_merge_cost` of node a against each of `others` (boundary sums `entries`), vectorised."""
@@ -404,8 +439,9 @@ def _merge(stats: list[_Stats], edges: dict[tuple[int, int], int], superpixels: 
         # merge b into a
         merged = alive[a].merged(alive[b])
         alive[a] = merged
-        feats[a] = (merged.cr, merged.cg, merged.mean_lum) + tuple(merged.plane_) + (
-            1.0 if merged.sums[0] > 0 else 0.0,)
+        feats[a] = (
+            (merged.cr, merged.cg, merged.mean_lum) + tuple(merged.plane_) + (1.0 if merged.sums[0] > 0 else 0.0,)
+        )
         del alive[b]
         parent[b] = a
         for c, (sx_, sy_, n_) in neighbours.pop(b).items():
@@ -435,20 +471,19 @@ def _relabel(labels: np.ndarray) -> np.ndarray:
     out = np.zeros(labels.shape, np.int32)
     next_id = 1
     low = int(labels.min())
-    shifted = (labels - (low - 1)).astype(np.int32)          # 1.. for find_objects
+    shifted = (labels - (low - 1)).astype(np.int32)  # 1.. for find_objects
     for index, box in enumerate(ndimage.find_objects(shifted)):
         if box is None:
             continue
-        mask = shifted[box] == index + 1                     # components inside the value's bounding box:
-        n, components = cv2.connectedComponents(mask.astype(np.uint8), connectivity=4)   # same raster order
+        mask = shifted[box] == index + 1  # components inside the value's bounding box:
+        n, components = cv2.connectedComponents(mask.astype(np.uint8), connectivity=4)  # same raster order
         region = out[box]
         region[mask] = components[mask] + (next_id - 1)
         next_id += n - 1
     return out
 
 
-def _absorb_small(labels: np.ndarray, aligned: np.ndarray, disparity: DisparityMap,
-                  params: SketchParams) -> np.ndarray:
+def _absorb_small(labels: np.ndarray, aligned: np.ndarray, disparity: DisparityMap, params: SketchParams) -> np.ndarray:
     """Merge small regions and thin rims (defocus rims, colour fringes at occlusion boundaries) into the
     touching region most alike in colour and disparity, smallest first."""
     total = labels.size
@@ -478,8 +513,10 @@ def _absorb_small(labels: np.ndarray, aligned: np.ndarray, disparity: DisparityM
         for j in neighbours[i]:
             if sizes[j] <= sizes[i] or not (np.isfinite(dmed[i]) and np.isfinite(dmed[j])):
                 continue
-            if abs(dmed[i] - dmed[j]) < 0.5 * params.disparity_threshold_px and np.linalg.norm(
-                    csum[i] / sizes[i] - csum[j] / sizes[j]) < 2.0 * params.chroma_threshold:
+            if (
+                abs(dmed[i] - dmed[j]) < 0.5 * params.disparity_threshold_px
+                and np.linalg.norm(csum[i] / sizes[i] - csum[j] / sizes[j]) < 2.0 * params.chroma_threshold
+            ):
                 return True
         return False
 
@@ -488,16 +525,21 @@ def _absorb_small(labels: np.ndarray, aligned: np.ndarray, disparity: DisparityM
         (it is joined with the rest of its object later, see `_join_across_occluders`)."""
         if not np.isfinite(dmed[i]) or sizes[i] < 0.4 * params.min_region_fraction * total:
             return False
-        return all(np.isfinite(dmed[j]) and abs(dmed[i] - dmed[j]) > 2.0 * params.disparity_threshold_px
-                   for j in neighbours[i])
+        return all(
+            np.isfinite(dmed[j]) and abs(dmed[i] - dmed[j]) > 2.0 * params.disparity_threshold_px for j in neighbours[i]
+        )
 
     def is_small(i: int) -> bool:
         thickness = 2.0 * sizes[i] / max(perimeter[i], 1.0)
         if thickness >= 3.0 * params.sliver_thickness_px and distinct(i):
             return False
-        return sizes[i] > 0 and (sizes[i] < params.min_region_fraction * total or (
-            sizes[i] < params.sliver_max_fraction * total and (
-                thickness < params.sliver_thickness_px or fragment(i))))
+        return sizes[i] > 0 and (
+            sizes[i] < params.min_region_fraction * total
+            or (
+                sizes[i] < params.sliver_max_fraction * total
+                and (thickness < params.sliver_thickness_px or fragment(i))
+            )
+        )
 
     while True:
         small = [i for i in range(1, count) if parent[i] == i and is_small(i) and neighbours[i]]
@@ -508,16 +550,19 @@ def _absorb_small(labels: np.ndarray, aligned: np.ndarray, disparity: DisparityM
         for j, length in neighbours[i].items():
             ci, cj = csum[i] / sizes[i], csum[j] / sizes[j]
             dd = abs(dmed[i] - dmed[j]) if np.isfinite(dmed[i]) and np.isfinite(dmed[j]) else 0.0
-            cost = (np.linalg.norm(ci - cj) / params.chroma_threshold
-                    + abs(lsum[i] / sizes[i] - lsum[j] / sizes[j]) / params.luminance_threshold
-                    + dd / params.disparity_threshold_px - 0.5 * np.log(length / max(perimeter[i], 1.0)))
+            cost = (
+                np.linalg.norm(ci - cj) / params.chroma_threshold
+                + abs(lsum[i] / sizes[i] - lsum[j] / sizes[j]) / params.luminance_threshold
+                + dd / params.disparity_threshold_px
+                - 0.5 * np.log(length / max(perimeter[i], 1.0))
+            )
             if cost < best_cost:
                 best, best_cost = j, cost
         assert best is not None
         j = best
         parent[i] = j
         if np.isfinite(dmed[i]) and np.isfinite(dmed[j]):
-            dmed[j] = (dmed[j] * sizes[j] + dmed[i] * sizes[i] * 0.0) / sizes[j]   # keep the larger one's value
+            dmed[j] = (dmed[j] * sizes[j] + dmed[i] * sizes[i] * 0.0) / sizes[j]  # keep the larger one's value
         sizes[j] += sizes[i]
         csum[j] += csum[i]
         lsum[j] += lsum[i]
@@ -543,8 +588,9 @@ def _absorb_small(labels: np.ndarray, aligned: np.ndarray, disparity: DisparityM
     return lookup[merged]
 
 
-def robust_plane(xs: np.ndarray, ys: np.ndarray, values: np.ndarray, weights: np.ndarray,
-                 iterations: int = 6) -> tuple[np.ndarray, np.ndarray]:
+def robust_plane(
+    xs: np.ndarray, ys: np.ndarray, values: np.ndarray, weights: np.ndarray, iterations: int = 6
+) -> tuple[np.ndarray, np.ndarray]:
     """IRLS (Tukey-like) fit of values = a x + b y + c; returns (a, b, c) and the final weights."""
     w = weights.astype(np.float64).copy()
     design = np.stack([xs, ys, np.ones_like(xs)], axis=1).astype(np.float64)
@@ -584,8 +630,9 @@ def interior_weights(labels: np.ndarray, confidence: np.ndarray, margin_px: int)
     return confidence * np.clip(distance / max(margin_px, 1), 0.0, 1.0)
 
 
-def _fit_regions(labels: np.ndarray, aligned: np.ndarray, disparity: DisparityMap,
-                 params: SketchParams, max_samples: int = 20_000) -> list[SketchRegion]:
+def _fit_regions(
+    labels: np.ndarray, aligned: np.ndarray, disparity: DisparityMap, params: SketchParams, max_samples: int = 20_000
+) -> list[SketchRegion]:
     """Per region: centroid and colour over all its pixels (bincount), the disparity model from at most
     `max_samples` of its pixels (an even subsample: the robust fits need no more)."""
     weights = interior_weights(labels, disparity.confidence, 5)
@@ -598,17 +645,19 @@ def _fit_regions(labels: np.ndarray, aligned: np.ndarray, disparity: DisparityMa
     safe = np.maximum(sizes, 1)
     cxs = np.bincount(flat, weights=xs_all, minlength=count) / safe
     cys = np.bincount(flat, weights=ys_all, minlength=count) / safe
-    colours = np.stack([np.bincount(flat, weights=aligned[..., c].ravel(), minlength=count) for c in range(3)],
-                       axis=1) / safe[:, None]
+    colours = (
+        np.stack([np.bincount(flat, weights=aligned[..., c].ravel(), minlength=count) for c in range(3)], axis=1)
+        / safe[:, None]
+    )
     d_all = disparity.disparity_px.ravel()
     w_all = weights.ravel()
     c_all = disparity.confidence.ravel()
 
     def fit(region_id: int) -> SketchRegion:
         n = int(sizes[region_id])
-        members = np.flatnonzero(flat == region_id)         # raster order
+        members = np.flatnonzero(flat == region_id)  # raster order
         if n > max_samples:
-            members = members[::int(np.ceil(n / max_samples))]
+            members = members[:: int(np.ceil(n / max_samples))]
         x, y = xs_all[members], ys_all[members]
         d = d_all[members].astype(np.float64)
         w = w_all[members].astype(np.float64)
@@ -618,15 +667,15 @@ def _fit_regions(labels: np.ndarray, aligned: np.ndarray, disparity: DisparityMa
         plane, slanted, confidence = select_model(x - cx, y - cy, d, w, params)
         a, b, c = plane
         colour = tuple(float(v) for v in colours[region_id])
-        return SketchRegion(region_id, n, (cx, cy), (a, b, c - a * cx - b * cy), slanted,
-                            confidence, colour)  # type: ignore[arg-type]
+        return SketchRegion(region_id, n, (cx, cy), (a, b, c - a * cx - b * cy), slanted, confidence, colour)  # type: ignore[arg-type]
 
     # regions are independent: fitted on the worker threads (the sorts and solves release the GIL)
     return parallel_map(fit, [i for i in range(1, count) if sizes[i] > 0])
 
 
-def select_model(x: np.ndarray, y: np.ndarray, d: np.ndarray, w: np.ndarray, params: SketchParams
-                 ) -> tuple[tuple[float, float, float], bool, float]:
+def select_model(
+    x: np.ndarray, y: np.ndarray, d: np.ndarray, w: np.ndarray, params: SketchParams
+) -> tuple[tuple[float, float, float], bool, float]:
     """Constant or plane disparity for one region (coordinates centred): keep the plane only if it spans
     a real disparity range over the region and removes most of the constant model's residual."""
     value, wc = robust_constant(d, w)
@@ -646,8 +695,9 @@ def select_model(x: np.ndarray, y: np.ndarray, d: np.ndarray, w: np.ndarray, par
     return (0.0, 0.0, float(value)), False, confidence
 
 
-def _occlusion(labels: np.ndarray, regions: list[SketchRegion], disparity: DisparityMap
-               ) -> tuple[dict[int, list[int]], dict[tuple[int, int], float]]:
+def _occlusion(
+    labels: np.ndarray, regions: list[SketchRegion], disparity: DisparityMap
+) -> tuple[dict[int, list[int]], dict[tuple[int, int], float]]:
     """Touching pairs: the nearer region (smaller disparity at the shared boundary) occludes the other.
 
     Ownership evidence: on the boundary the measured disparity follows the occluding region, so
@@ -660,7 +710,7 @@ def _occlusion(labels: np.ndarray, regions: list[SketchRegion], disparity: Dispa
     ownership: dict[tuple[int, int], float] = {}
     boxes = ndimage.find_objects(labels)
     height, width = labels.shape
-    for (a, b), length in adjacency(labels).items():
+    for (a, b), _length in adjacency(labels).items():
         if a == 0 or b == 0 or a not in by_id or b not in by_id:
             continue
         # the boundary band lies inside the union of the two regions' bounding boxes (plus the band's width)
@@ -696,8 +746,9 @@ def rescale_plane(plane: tuple[float, float, float], factor: float) -> tuple[flo
     return (a, b, factor * c + (a + b) * (0.5 - 0.5 * factor))
 
 
-def occlusion_aware_weights(labels: np.ndarray, confidence: np.ndarray, occludes: dict[int, list[int]],
-                            margin_px: int) -> np.ndarray:
+def occlusion_aware_weights(
+    labels: np.ndarray, confidence: np.ndarray, occludes: dict[int, list[int]], margin_px: int
+) -> np.ndarray:
     """Confidence, zeroed in each region within `margin_px` of a region that occludes it: there the
     windows mix the occluder's edge (at the occluder's disparity) and per-channel disocclusions."""
     weights = confidence.astype(np.float32).copy()
@@ -717,22 +768,23 @@ class RefineParams:
 
     window_px: int = 9
     noise_floor: float = 2e-3
-    search_radius_px: float = 1.5       # +- around the sketch's estimate, processing px
-    coarse_step_px: float = 0.5         # first pass: offsets this far apart (processing px) ...
-    fine_step_px: float = 0.1           # ... second pass around each region's first-pass centre
-    fine_count: int = 2                 # second pass (pyramid level): offsets -fine_count..+fine_count ...
-    level_fine_step_px: float = 0.2     # ... this far apart (processing px): 5 evaluations cover +-0.4 px
-    max_pixels: int = 1_400_000         # the refinement runs on the first pyramid level at most this large
-    band_sigma_px: tuple[float, float] = (2.0, 10.0)   # band-pass at the level: band-limits, so that the
-                                                      # linear interpolation does not pull toward whole pixels
-    cell_px: int = 48                   # side of the cells whose minima are fitted robustly (processing px)
+    search_radius_px: float = 1.5  # +- around the sketch's estimate, processing px
+    coarse_step_px: float = 0.5  # first pass: offsets this far apart (processing px) ...
+    fine_step_px: float = 0.1  # ... second pass around each region's first-pass centre
+    fine_count: int = 2  # second pass (pyramid level): offsets -fine_count..+fine_count ...
+    level_fine_step_px: float = 0.2  # ... this far apart (processing px): 5 evaluations cover +-0.4 px
+    max_pixels: int = 1_400_000  # the refinement runs on the first pyramid level at most this large
+    band_sigma_px: tuple[float, float] = (2.0, 10.0)  # band-pass at the level: band-limits, so that the
+    # linear interpolation does not pull toward whole pixels
+    cell_px: int = 48  # side of the cells whose minima are fitted robustly (processing px)
     coarse_on_next_level: bool = False  # pass 1 on the next (4x smaller) pyramid level: ~2x faster refinement,
-                                        # but it moved paper-e's spatula by 0.2 input px and lowered the dips;
-                                        # off until `mca evaluate` shows no regression
+    # but it moved paper-e's spatula by 0.2 input px and lowered the dips;
+    # off until `mca evaluate` shows no regression
 
 
 def _parabola_min(xs: np.ndarray, ys: np.ndarray) -> float:
     from mca.processing.disparity import subpixel_minimum
+
     i = int(np.argmin(ys))
     if 0 < i < len(xs) - 1:
         step = xs[i + 1] - xs[i]
@@ -745,8 +797,8 @@ class RefineLevel:
     """The pyramid level the refinement runs on (0 = the processing grid itself) and its band-pass planes."""
 
     level: int
-    band: np.ndarray | None             # (h, w, 3) float32 band-pass of the level; None for level 0
-    coarse_band: np.ndarray | None = None   # band-pass of the next level (pass 1), when asked for
+    band: np.ndarray | None  # (h, w, 3) float32 band-pass of the level; None for level 0
+    coarse_band: np.ndarray | None = None  # band-pass of the next level (pass 1), when asked for
 
 
 def prepare_refine_level(planes: np.ndarray, params: RefineParams = RefineParams()) -> RefineLevel:
@@ -754,13 +806,13 @@ def prepare_refine_level(planes: np.ndarray, params: RefineParams = RefineParams
     from mca.processing.disparity import band_pass
 
     level = 0
-    while planes.shape[0] * planes.shape[1] / 4 ** level > params.max_pixels:
+    while planes.shape[0] * planes.shape[1] / 4**level > params.max_pixels:
         level += 1
     if level == 0:
         return RefineLevel(0, None)
     reduced = planes
     for _ in range(level):
-        reduced = cv2.pyrDown(reduced)      # anti-aliased: aliasing would not move with the disparity
+        reduced = cv2.pyrDown(reduced)  # anti-aliased: aliasing would not move with the disparity
     coarse = band_pass(cv2.pyrDown(reduced), *params.band_sigma_px) if params.coarse_on_next_level else None
     return RefineLevel(level, band_pass(reduced, *params.band_sigma_px), coarse)
 
@@ -769,13 +821,21 @@ class _LevelState:
     """One pyramid level's share of `refine_regions`: labels, weights, per-pixel model owner and the (region, cell)
     bins of the level, and the cost of model-map offsets reduced over those bins."""
 
-    def __init__(self, band: np.ndarray, level: int, labels: np.ndarray, weights: np.ndarray, ids: list[int],
-                 planes_px: dict[int, tuple[float, float, float]], aperture: FilterAperture,
-                 params: RefineParams) -> None:
+    def __init__(
+        self,
+        band: np.ndarray,
+        level: int,
+        labels: np.ndarray,
+        weights: np.ndarray,
+        ids: list[int],
+        planes_px: dict[int, tuple[float, float, float]],
+        aperture: FilterAperture,
+        params: RefineParams,
+    ) -> None:
         from mca.processing.disparity import AlignmentCost
 
         height, width = band.shape[:2]
-        factor = 2.0 ** level
+        factor = 2.0**level
         if level:
             llabels = cv2.resize(labels.astype(np.int32), (width, height), interpolation=cv2.INTER_NEAREST)
             lweights = cv2.resize(weights.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
@@ -784,7 +844,7 @@ class _LevelState:
         count = len(ids)
         lut = np.full(max(int(llabels.max()), max(ids)) + 1, count, np.int64)
         lut[ids] = np.arange(count)
-        index = lut[llabels]                                  # region index per pixel, `count` = not refined
+        index = lut[llabels]  # region index per pixel, `count` = not refined
         lplanes = np.array([rescale_plane(planes_px[i], 1.0 / factor) for i in ids] + [(0.0, 0.0, 0.0)])
         xs = np.arange(width, dtype=np.float32)[None, :]
         ys = np.arange(height, dtype=np.float32)[:, None]
@@ -799,16 +859,18 @@ class _LevelState:
         # windows reaching past the image border see replicated pixels, not the scene: leave them out
         border = params.window_px // 2 + int(np.ceil(float(np.abs(model).max()) * 0.75 + radius)) + 1
         inside = np.zeros((height, width), bool)
-        inside[border:-border or None, border:-border or None] = True
+        inside[border : -border or None, border : -border or None] = True
         sizes = np.bincount(index.ravel(), minlength=count + 1)[:count]
         inner = np.bincount(index[inside], minlength=count + 1)[:count]
-        keep_all = inner < 0.1 * sizes                        # tiny regions at the border keep their border pixels
+        keep_all = inner < 0.1 * sizes  # tiny regions at the border keep their border pixels
         use = inside | keep_all[np.minimum(index, count - 1)] & (index < count)
         # Every pixel is warped with one region's model, so a window that straddles a boundary would mix two
         # models. An occluding contour moves with the occluder: each pixel takes the model of the nearest region
         # within half a window (a min filter over the regions' depth ranks), so the occluder's windows see its
         # model on both sides of its contour; a pixel counts for its own region only when it kept its own model.
-        mean_model = np.bincount(index.ravel(), weights=model.ravel(), minlength=count + 1)[:count] / np.maximum(sizes, 1)
+        mean_model = np.bincount(index.ravel(), weights=model.ravel(), minlength=count + 1)[:count] / np.maximum(
+            sizes, 1
+        )
         rank_of = np.empty(count + 1, np.int64)
         rank_of[np.argsort(mean_model, kind="stable")] = np.arange(count)
         rank_of[count] = count
@@ -821,7 +883,7 @@ class _LevelState:
         model = model_map(lplanes, index_model)
         w = np.where(use & clear & (index < count), lweights, 0.0).astype(np.float32)
         wsum_region = np.bincount(index.ravel(), weights=w.ravel(), minlength=count + 1)[:count]
-        empty = wsum_region < 1e-6                            # no confident pixel: every pixel counts
+        empty = wsum_region < 1e-6  # no confident pixel: every pixel counts
         if empty.any():
             fill = empty[np.minimum(index, count - 1)] & (index < count) & use
             w[fill] = 1.0
@@ -840,7 +902,6 @@ class _LevelState:
         cys /= np.maximum(wsum, 1e-12)
         cost_model = AlignmentCost(band, aperture, params.window_px, params.noise_floor)
 
-
         self.count, self.factor, self.wsum, self.cxs, self.cys = count, factor, wsum, cxs, cys
         self.lplanes, self.index_model, self.model_map, self.model = lplanes, index_model, model_map, model
         self.w, self.bins, self.n_bins, self.n_cells, self.cost_model = w, bins, n_bins, n_cells, cost_model
@@ -852,17 +913,22 @@ class _LevelState:
 
         def reduce(k: int, cost: np.ndarray) -> None:
             cost *= w
-            out[:, :, k] = np.bincount(bins, weights=cost.ravel(), minlength=n_bins).reshape(
-                count + 1, n_cells)[:count]
+            out[:, :, k] = np.bincount(bins, weights=cost.ravel(), minlength=n_bins).reshape(count + 1, n_cells)[:count]
 
         self.cost_model.offsets(base, offsets, reduce)
         return out
 
 
-def refine_regions(planes: np.ndarray, aperture: FilterAperture, labels: np.ndarray, weights: np.ndarray,
-                   planes_px: dict[int, tuple[float, float, float]], slanted: dict[int, bool],
-                   params: RefineParams = RefineParams(), prepared: "RefineLevel | None" = None
-                   ) -> tuple[dict[int, tuple[float, float, float]], dict[int, float]]:
+def refine_regions(
+    planes: np.ndarray,
+    aperture: FilterAperture,
+    labels: np.ndarray,
+    weights: np.ndarray,
+    planes_px: dict[int, tuple[float, float, float]],
+    slanted: dict[int, bool],
+    params: RefineParams = RefineParams(),
+    prepared: RefineLevel | None = None,
+) -> tuple[dict[int, tuple[float, float, float]], dict[int, float]]:
     """Refine every region's disparity model (processing px) at once by minimising the colour-line cost
     summed over its weighted pixels.
 
@@ -936,7 +1002,7 @@ def refine_regions(planes: np.ndarray, aperture: FilterAperture, labels: np.ndar
     coarse_cells = cs.curves(cs.model, coarse)
     total = coarse_cells.sum(axis=1) / np.maximum(cs.wsum.sum(axis=1), 1e-9)[:, None]
     coef = lplanes[:count].copy()
-    cell_best = coarse[np.argmin(coarse_cells, axis=2)] * (cs.factor / factor)      # in px of the fine level
+    cell_best = coarse[np.argmin(coarse_cells, axis=2)] * (cs.factor / factor)  # in px of the fine level
     for r in range(count):
         used = cs.wsum[r] > 0.05 * max(float(cs.wsum[r].max()), 1e-12)
         if used.any():
@@ -954,10 +1020,15 @@ def refine_regions(planes: np.ndarray, aperture: FilterAperture, labels: np.ndar
     return results, dips
 
 
-def _refine_per_region(planes: np.ndarray, aperture: FilterAperture, labels: np.ndarray, weights: np.ndarray,
-                   planes_px: dict[int, tuple[float, float, float]], slanted: dict[int, bool],
-                   params: RefineParams = RefineParams()) -> tuple[dict[int, tuple[float, float, float]],
-                                                                   dict[int, float]]:
+def _refine_per_region(
+    planes: np.ndarray,
+    aperture: FilterAperture,
+    labels: np.ndarray,
+    weights: np.ndarray,
+    planes_px: dict[int, tuple[float, float, float]],
+    slanted: dict[int, bool],
+    params: RefineParams = RefineParams(),
+) -> tuple[dict[int, tuple[float, float, float]], dict[int, float]]:
     """`refine_regions` for grids that need no pyramid level (at most `max_pixels`): one crop per region with
     the region's own model extended over the crop (its occluding contours keep their windows whole)."""
     from mca.processing.disparity import AlignmentCost, band_pass
@@ -969,30 +1040,37 @@ def _refine_per_region(planes: np.ndarray, aperture: FilterAperture, labels: np.
     counts = np.bincount(labels.ravel(), minlength=int(labels.max()) + 1)
     for region_id, plane in planes_px.items():
         level = 0
-        while counts[region_id] / 4 ** level > params.max_pixels:
+        while counts[region_id] / 4**level > params.max_pixels:
             level += 1
         if level not in pyramid:
-            f = 2 ** level
+            f = 2**level
             size = (max(1, band.shape[1] // f), max(1, band.shape[0] // f))
             # Gaussian pyramid (anti-aliased): aliasing would not move with the disparity and pull it toward 0
             reduced = planes
             for _ in range(level):
                 reduced = cv2.pyrDown(reduced)
-            reduced = cv2.resize(reduced, size, interpolation=cv2.INTER_LINEAR) if reduced.shape[1::-1] != size \
-                else reduced
-            pyramid[level] = (band_pass(reduced, *params.band_sigma_px),
-                              cv2.resize(labels.astype(np.int32), size, interpolation=cv2.INTER_NEAREST),
-                              cv2.resize(weights, size, interpolation=cv2.INTER_AREA))
+            reduced = (
+                cv2.resize(reduced, size, interpolation=cv2.INTER_LINEAR) if reduced.shape[1::-1] != size else reduced
+            )
+            pyramid[level] = (
+                band_pass(reduced, *params.band_sigma_px),
+                cv2.resize(labels.astype(np.int32), size, interpolation=cv2.INTER_NEAREST),
+                cv2.resize(weights, size, interpolation=cv2.INTER_AREA),
+            )
         lband, llabels, lweights = pyramid[level]
-        factor = 2.0 ** level
+        factor = 2.0**level
         lplane = rescale_plane(plane, 1.0 / factor)
         mask = llabels == region_id
         ys, xs = np.nonzero(mask)
         if xs.size == 0:
             results[region_id], dips[region_id] = plane, 0.0
             continue
-        d_range = np.array([lplane[0] * x + lplane[1] * y + lplane[2] for x, y in
-                            ((xs.min(), ys.min()), (xs.max(), ys.max()), (xs.min(), ys.max()), (xs.max(), ys.min()))])
+        d_range = np.array(
+            [
+                lplane[0] * x + lplane[1] * y + lplane[2]
+                for x, y in ((xs.min(), ys.min()), (xs.max(), ys.max()), (xs.min(), ys.max()), (xs.max(), ys.min()))
+            ]
+        )
         radius = params.search_radius_px / factor
         reach = int(np.ceil(np.abs(d_range).max() * 0.75 + radius + params.window_px)) + 2
         x0, x1 = max(0, xs.min() - reach), min(lband.shape[1], xs.max() + reach + 1)
@@ -1005,7 +1083,7 @@ def _refine_per_region(planes: np.ndarray, aperture: FilterAperture, labels: np.
         # windows reaching past the image border see replicated pixels, not the scene: leave them out
         border = params.window_px // 2 + int(np.ceil(np.abs(d_range).max() * 0.75 + radius)) + 1
         inside = np.zeros(lband.shape[:2], bool)
-        inside[border:-border or None, border:-border or None] = True
+        inside[border : -border or None, border : -border or None] = True
         cmask_inner = cmask & inside[y0:y1, x0:x1]
         if cmask_inner.sum() >= 0.1 * cmask.sum():
             cmask = cmask_inner
@@ -1040,8 +1118,9 @@ def _refine_per_region(planes: np.ndarray, aperture: FilterAperture, labels: np.
         fine = centre + np.arange(-6, 7) * fine_step
         fine_cells = curve(fine)
         total = fine_cells.sum(axis=0) / max(wsum.sum(), 1e-9)
-        dips[region_id] = float(np.clip((coarse_curve.mean() - total.min()) / max(coarse_curve.mean(), 1e-6) * 3.0,
-                                        0.0, 1.0))
+        dips[region_id] = float(
+            np.clip((coarse_curve.mean() - total.min()) / max(coarse_curve.mean(), 1e-6) * 3.0, 0.0, 1.0)
+        )
         # per-cell minimum, weight = curvature x weight; minima at the end of the fine range are outliers
         best = np.argmin(fine_cells, axis=1)
         inner = (best > 0) & (best < len(fine) - 1) & (wsum > 0)
@@ -1049,6 +1128,7 @@ def _refine_per_region(planes: np.ndarray, aperture: FilterAperture, labels: np.
         rows = np.arange(len(best))
         before, at, after = fine_cells[rows, idx - 1], fine_cells[rows, idx], fine_cells[rows, idx + 1]
         from mca.processing.disparity import subpixel_minimum
+
         offsets = fine[idx] + fine_step * subpixel_minimum(before, at, after)
         curvature = np.maximum(before - 2 * at + after, 0.0) / np.maximum(wsum, 1e-9)
         cell_w = np.where(inner, np.sqrt(wsum) * np.sqrt(curvature), 0.0)
@@ -1072,12 +1152,12 @@ def _refine_per_region(planes: np.ndarray, aperture: FilterAperture, labels: np.
 class BoundaryParams:
     """Narrow-band reassignment of region labels (see `snap_boundaries`)."""
 
-    band_px: int = 5                    # half-width (analysis px) of the band reconsidered on the analysis grid:
-                                        # the sketch's boundaries are off by up to about 4 analysis px
-    model_window_px: int = 21           # side of the window (analysis px) of each region's local colour model
-    interior_px: int = 2                # the model uses region pixels this far inside (analysis px)
-    min_contrast: float = 1.0           # the two regions' local models must differ this much (feature units)
-    chroma_scale: float = 0.045         # feature units: chromaticity / chroma_scale, log luminance * lum_weight
+    band_px: int = 5  # half-width (analysis px) of the band reconsidered on the analysis grid:
+    # the sketch's boundaries are off by up to about 4 analysis px
+    model_window_px: int = 21  # side of the window (analysis px) of each region's local colour model
+    interior_px: int = 2  # the model uses region pixels this far inside (analysis px)
+    min_contrast: float = 1.0  # the two regions' local models must differ this much (feature units)
+    chroma_scale: float = 0.045  # feature units: chromaticity / chroma_scale, log luminance * lum_weight
     lum_weight: float = 0.5
 
 
@@ -1096,7 +1176,7 @@ class _LocalColourModels:
 
     def __init__(self, labels_an: np.ndarray, aligned_an: np.ndarray, params: BoundaryParams) -> None:
         self.labels, self.params = labels_an, params
-        self.features = _boundary_features(np.asarray(aligned_an, np.float32)[::2, ::2], params)   # every 2nd px
+        self.features = _boundary_features(np.asarray(aligned_an, np.float32)[::2, ::2], params)  # every 2nd px
         self.kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * params.interior_px + 1,) * 2)
         self.maps: dict[int, tuple[int, int, np.ndarray]] = {}
 
@@ -1104,11 +1184,11 @@ class _LocalColourModels:
         """(row0, col0, sums (h, w, 4): feature sums and pixel count) over the region's bounding box + window."""
         if region_id not in self.maps:
             mask = (self.labels == region_id).astype(np.uint8)
-            inner = cv2.erode(mask, self.kernel, borderType=cv2.BORDER_REPLICATE)[::2, ::2]   # away from mixed px
+            inner = cv2.erode(mask, self.kernel, borderType=cv2.BORDER_REPLICATE)[::2, ::2]  # away from mixed px
             if not inner.any():
                 inner = mask[::2, ::2]
             h, w = inner.shape
-            half = self.params.model_window_px // 4               # the window on the grid of every 2nd pixel
+            half = self.params.model_window_px // 4  # the window on the grid of every 2nd pixel
             x, y, bw, bh = cv2.boundingRect(inner)
             if bw == 0:
                 self.maps[region_id] = (0, 0, np.zeros((1, 1, 4), np.float32))
@@ -1120,8 +1200,11 @@ class _LocalColourModels:
             np.multiply(self.features[r0:r1, c0:c1], m[..., None], out=stack[..., :3])
             stack[..., 3] = m
             size = (2 * half + 1, 2 * half + 1)
-            self.maps[region_id] = (r0, c0, cv2.boxFilter(stack, cv2.CV_32F, size, normalize=False,
-                                                          borderType=cv2.BORDER_CONSTANT))
+            self.maps[region_id] = (
+                r0,
+                c0,
+                cv2.boxFilter(stack, cv2.CV_32F, size, normalize=False, borderType=cv2.BORDER_CONSTANT),
+            )
         return self.maps[region_id]
 
     def lookup(self, cand: np.ndarray, ya: np.ndarray, xa: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1145,9 +1228,19 @@ class _LocalColourModels:
         return models, support
 
 
-def _reassign(planes: np.ndarray, aperture: FilterAperture, ys: np.ndarray, xs: np.ndarray, cand: np.ndarray,
-              current: np.ndarray, coef: np.ndarray, models: np.ndarray, support: np.ndarray,
-              params: BoundaryParams, smooth: bool) -> tuple[np.ndarray, np.ndarray]:
+def _reassign(
+    planes: np.ndarray,
+    aperture: FilterAperture,
+    ys: np.ndarray,
+    xs: np.ndarray,
+    cand: np.ndarray,
+    current: np.ndarray,
+    coef: np.ndarray,
+    models: np.ndarray,
+    support: np.ndarray,
+    params: BoundaryParams,
+    smooth: bool,
+) -> tuple[np.ndarray, np.ndarray]:
     """For band pixels (ys, xs) of `planes` with candidate labels `cand` (2, N): (pixels to change, new labels).
 
     Each pixel's colour is sampled with each candidate's disparity model (`coef[id]` = (a, b, c) in px of
@@ -1187,16 +1280,28 @@ def _reassign(planes: np.ndarray, aperture: FilterAperture, ys: np.ndarray, xs: 
         grid[ys - y0, xs - x0] = score
         score = cv2.boxFilter(grid, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)[ys - y0, xs - x0]
     gap = models[0] - models[1]
-    decide = support[0] & support[1] & (np.einsum("ij,ij->i", gap, gap) >= params.min_contrast ** 2) & (
-        (current == cand[0]) | (current == cand[1]))
+    decide = (
+        support[0]
+        & support[1]
+        & (np.einsum("ij,ij->i", gap, gap) >= params.min_contrast**2)
+        & ((current == cand[0]) | (current == cand[1]))
+    )
     new = np.where(score > 0, cand[1], cand[0])
     change = decide & (new != current)
     return change, new[change]
 
 
-def snap_boundaries(planes: np.ndarray, aperture: FilterAperture, labels_full: np.ndarray,
-                    small: np.ndarray, labels_an: np.ndarray, aligned_an: np.ndarray, coef: np.ndarray,
-                    factor: int, params: BoundaryParams = BoundaryParams()) -> np.ndarray:
+def snap_boundaries(
+    planes: np.ndarray,
+    aperture: FilterAperture,
+    labels_full: np.ndarray,
+    small: np.ndarray,
+    labels_an: np.ndarray,
+    aligned_an: np.ndarray,
+    coef: np.ndarray,
+    factor: int,
+    params: BoundaryParams = BoundaryParams(),
+) -> np.ndarray:
     """Region labels at processing resolution with boundaries that follow the image edges.
 
     `labels_full` is the analysis-grid `labels_an` (grid of `small`, `factor` times coarser than `planes`)
@@ -1208,10 +1313,10 @@ def snap_boundaries(planes: np.ndarray, aperture: FilterAperture, labels_full: n
     label is kept. Two passes: on the analysis grid within `band_px` (the decision box-smoothed over 3x3 px),
     then at processing resolution within one analysis px of the new boundaries (per pixel: smoothing measured no
     better there). Returns a new int32 label map (processing resolution)."""
-    h_an, w_an = labels_an.shape
+    _h_an, _w_an = labels_an.shape
     height, width = labels_full.shape
     local = _LocalColourModels(labels_an, aligned_an, params)
-    coef_an = coef.astype(np.float64).copy()              # the models on the analysis grid (rescale_plane inverse)
+    coef_an = coef.astype(np.float64).copy()  # the models on the analysis grid (rescale_plane inverse)
     coef_an[:, 2] = (coef[:, 2] + (coef[:, 0] + coef[:, 1]) * (0.5 * factor - 0.5)) / factor
     out = labels_full.astype(np.int32, copy=True)
     dy, dx = np.divmod(np.arange(factor * factor), factor)
@@ -1238,7 +1343,19 @@ def snap_boundaries(planes: np.ndarray, aperture: FilterAperture, labels_full: n
         return out
     models, support = local.lookup(cand, ya, xa)
     labels_new = labels_an.astype(np.int32, copy=True)
-    change, new = _reassign(np.ascontiguousarray(small, dtype=np.float32), aperture, ya, xa, cand, labels_an[ya, xa], coef_an, models, support, params, True)
+    change, new = _reassign(
+        np.ascontiguousarray(small, dtype=np.float32),
+        aperture,
+        ya,
+        xa,
+        cand,
+        labels_an[ya, xa],
+        coef_an,
+        models,
+        support,
+        params,
+        True,
+    )
     labels_new[ya[change], xa[change]] = new
     ys, xs, owner = blocks(ya[change], xa[change])
     out[ys, xs] = new[owner]
@@ -1249,7 +1366,18 @@ def snap_boundaries(planes: np.ndarray, aperture: FilterAperture, labels_full: n
     models, support = local.lookup(cand, ya, xa)
     ys, xs, owner = blocks(ya, xa)
     cand_full = cand[:, owner]
-    change, new = _reassign(np.ascontiguousarray(planes, dtype=np.float32), aperture, ys, xs, cand_full,
-                            out[ys, xs], coef, models[:, owner], support[:, owner], params, False)
+    change, new = _reassign(
+        np.ascontiguousarray(planes, dtype=np.float32),
+        aperture,
+        ys,
+        xs,
+        cand_full,
+        out[ys, xs],
+        coef,
+        models[:, owner],
+        support[:, owner],
+        params,
+        False,
+    )
     out[ys[change], xs[change]] = new
     return out

@@ -5,6 +5,7 @@ dependency; nothing is downloaded and no user file is read). A texture is
 defined in frame units (1 = the frame height) so that a scene looks the same,
 up to resampling, at every render size.
 """
+
 from __future__ import annotations
 
 import functools
@@ -14,8 +15,25 @@ import cv2
 import numpy as np
 
 # Photographs in skimage.data that are part of the scikit-image wheel (no pooch download needed).
-PHOTOGRAPHS = ("astronaut", "coffee", "chelsea", "rocket", "brick", "grass", "gravel", "camera", "moon",
-               "coins", "text", "page", "clock", "hubble_deep_field", "immunohistochemistry", "retina", "cell")
+PHOTOGRAPHS = (
+    "astronaut",
+    "coffee",
+    "chelsea",
+    "rocket",
+    "brick",
+    "grass",
+    "gravel",
+    "camera",
+    "moon",
+    "coins",
+    "text",
+    "page",
+    "clock",
+    "hubble_deep_field",
+    "immunohistochemistry",
+    "retina",
+    "cell",
+)
 
 
 @dataclass(frozen=True)
@@ -33,7 +51,7 @@ class Texture:
     offset: tuple[float, float] = (0.0, 0.0)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def photograph_luminance(name: str) -> np.ndarray:
     """The named skimage.data photograph as float32 luminance, zero mean and unit standard deviation."""
     if name not in PHOTOGRAPHS:
@@ -50,8 +68,9 @@ def photograph_luminance(name: str) -> np.ndarray:
     return result
 
 
-def texture_patch(texture: Texture, origin_px: tuple[float, float], shape: tuple[int, int],
-                  frame_height_px: float) -> np.ndarray:
+def texture_patch(
+    texture: Texture, origin_px: tuple[float, float], shape: tuple[int, int], frame_height_px: float
+) -> np.ndarray:
     """Relative modulation (around 1.0, float32, `shape`) of `texture` over a raster patch.
 
     `origin_px` is the (x, y) pixel position of the patch's top-left pixel in a raster whose
@@ -68,5 +87,5 @@ def texture_patch(texture: Texture, origin_px: tuple[float, float], shape: tuple
     y0 = int(round(origin_px[1] + texture.offset[1] * frame_height_px)) % period.shape[0]
     reps_y = -(-(y0 + shape[0]) // period.shape[0])
     reps_x = -(-(x0 + shape[1]) // period.shape[1])
-    tiled = np.tile(period, (reps_y, reps_x))[y0:y0 + shape[0], x0:x0 + shape[1]]
+    tiled = np.tile(period, (reps_y, reps_x))[y0 : y0 + shape[0], x0 : x0 + shape[1]]
     return np.clip(1.0 + texture.contrast * tiled, 0.05, 3.0).astype(np.float32)

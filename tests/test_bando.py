@@ -3,6 +3,7 @@
 Units: our disparity is between the widest filter pair (red-blue), which for that camera is
 2 d, d being the per-channel shift of the authors' NOTICE (books ~ +4 d = +8 px, wall ~ +6 d = +12 px).
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -32,20 +33,20 @@ def dog():
 
 
 def patch(result, x: int, y: int, size: int = 15) -> float:
-    return float(np.median(result.disparity_px[y - size:y + size, x - size:x + size]))
+    return float(np.median(result.disparity_px[y - size : y + size, x - size : x + size]))
 
 
 def test_dog_in_focus_books_then_wall(dog):
-    dog_px = patch(dog, 420, 300)                    # the toy dog's chest
-    books_px = patch(dog, 650, 300)                  # the books to its right
-    wall_px = patch(dog, 150, 100)                   # the far background
-    assert abs(dog_px) < 0.5                         # widest pair; |d| < 0.25 in the authors' units
-    assert dog_px < books_px < wall_px               # books nearer than the background, both behind the dog
-    assert 5.0 < books_px < 12.0 and 10.0 < wall_px < 17.0      # ~ 2 x (4, 6) of the NOTICE
+    dog_px = patch(dog, 420, 300)  # the toy dog's chest
+    books_px = patch(dog, 650, 300)  # the books to its right
+    wall_px = patch(dog, 150, 100)  # the far background
+    assert abs(dog_px) < 0.5  # widest pair; |d| < 0.25 in the authors' units
+    assert dog_px < books_px < wall_px  # books nearer than the background, both behind the dog
+    assert 5.0 < books_px < 12.0 and 10.0 < wall_px < 17.0  # ~ 2 x (4, 6) of the NOTICE
 
 
 def test_dog_region_is_the_focus_region(dog):
     region_id = int(dog.labels[300, 420])
     region = next(r for r in dog.regions if r.id == region_id)
     assert abs(region.disparity_px) < 0.5
-    assert region.distance_mm is None                # no optics for this camera: pixels only
+    assert region.distance_mm is None  # no optics for this camera: pixels only

@@ -1,4 +1,5 @@
 """Local batches: a spawn-context process pool gives the same outputs as one worker; watch mode; recordings."""
+
 from __future__ import annotations
 
 import json
@@ -11,13 +12,13 @@ import cv2
 import numpy as np
 import pytest
 import tifffile
+from test_process import fake_pipeline, files_under, make_cr2, make_png, make_tiff
 from typer.testing import CliRunner
 
 from mca.capture.batch import LineProgress, discover_inputs, run_batch
 from mca.capture.cli import app
 from mca.capture.pipeline_app import RESULT_NAME
 from mca.capture.profiles import load_profile
-from test_process import fake_pipeline, files_under, make_cr2, make_png, make_tiff
 
 
 @pytest.fixture(scope="module")
@@ -44,8 +45,9 @@ def assert_same_outputs(first: Path, second: Path) -> None:
             if (a / tiff).exists():
                 np.testing.assert_array_equal(tifffile.imread(a / tiff), tifffile.imread(b / tiff))
         for png in sorted(f for f in files_under(a) if f.endswith(".png")):
-            np.testing.assert_array_equal(cv2.imread(str(a / png), cv2.IMREAD_UNCHANGED),
-                                          cv2.imread(str(b / png), cv2.IMREAD_UNCHANGED))
+            np.testing.assert_array_equal(
+                cv2.imread(str(a / png), cv2.IMREAD_UNCHANGED), cv2.imread(str(b / png), cv2.IMREAD_UNCHANGED)
+            )
         for binary in ("scene.ply", "scene.glb"):
             if (a / binary).exists():
                 assert (a / binary).read_bytes() == (b / binary).read_bytes(), f"{name}/{binary}"
@@ -76,8 +78,9 @@ def test_pool_keeps_going_past_bad_files(tmp_path, profile):
     (folder / "broken.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"\0" * 20)
     (folder / "broken.CR2").write_bytes(b"II*\0")
     lines: list[str] = []
-    report = run_batch([folder], tmp_path / "out", profile, workers=2, pipeline=fake_pipeline,
-                       progress=LineProgress(lines.append))
+    report = run_batch(
+        [folder], tmp_path / "out", profile, workers=2, pipeline=fake_pipeline, progress=LineProgress(lines.append)
+    )
     statuses = {o.input_path.name: o.status for o in report.outcomes}
     assert statuses == {"a.png": "done", "b.png": "done", "broken.png": "failed", "broken.CR2": "failed"}
     assert all("broken" in o.reason for o in report.failed)
@@ -92,8 +95,16 @@ def test_watch_processes_files_as_they_arrive(tmp_path, profile):
 
     def watch() -> None:
         # settle 2 s against a 0.6 s pause mid-copy: margin for a writer stalled on two busy cores
-        holder["report"] = run_batch([inbox], tmp_path / "out", profile, watch=True, watch_timeout_s=3.0,
-                                     poll_interval_s=0.1, settle_s=2.0, pipeline=fake_pipeline)
+        holder["report"] = run_batch(
+            [inbox],
+            tmp_path / "out",
+            profile,
+            watch=True,
+            watch_timeout_s=3.0,
+            poll_interval_s=0.1,
+            settle_s=2.0,
+            pipeline=fake_pipeline,
+        )
 
     thread = threading.Thread(target=watch)
     thread.start()
@@ -116,7 +127,10 @@ def test_watch_processes_files_as_they_arrive(tmp_path, profile):
     assert not thread.is_alive()
     report = holder["report"]
     assert {o.input_path.name: o.status for o in report.outcomes} == {
-        "first.png": "done", "second.png": "done", "third.png": "done"}
+        "first.png": "done",
+        "second.png": "done",
+        "third.png": "done",
+    }
 
 
 def test_discovery_skips_hidden_and_foreign_files(tmp_path):
@@ -126,7 +140,11 @@ def test_discovery_skips_hidden_and_foreign_files(tmp_path):
     (tmp_path / "sub" / "deep.png").write_bytes(b"x")
     assert [p.name for p in discover_inputs([tmp_path])] == ["a.CR2", "b.png", "c.JPG"]
     assert [p.name for p in discover_inputs([tmp_path / "notes.txt", tmp_path])] == [
-        "notes.txt", "a.CR2", "b.png", "c.JPG"]
+        "notes.txt",
+        "a.CR2",
+        "b.png",
+        "c.JPG",
+    ]
 
 
 def test_cli_workers_and_record(tmp_path):
@@ -136,8 +154,9 @@ def test_cli_workers_and_record(tmp_path):
     make_png(folder / "a.png", 32, 40)
     make_png(folder / "b.png", 32, 40)
     merged = tmp_path / "all.rrd"
-    result = CliRunner().invoke(app, ["process", str(folder), "--out", str(tmp_path / "out"), "--workers", "2",
-                                      "--record", str(merged)])
+    result = CliRunner().invoke(
+        app, ["process", str(folder), "--out", str(tmp_path / "out"), "--workers", "2", "--record", str(merged)]
+    )
     assert result.exit_code == 0, result.output
     assert "2 done" in result.output
     for name in ("a", "b"):
@@ -176,8 +195,14 @@ def test_stage_progress_reaches_the_display(tmp_path, profile, workers):
     for name in ("a", "b"):
         make_png(tmp_path / f"{name}.png", 24, 32)
     log = StageLog()
-    report = run_batch([tmp_path / "a.png", tmp_path / "b.png"], tmp_path / "out", profile, workers=workers,
-                       pipeline=fake_pipeline, progress=log)
+    report = run_batch(
+        [tmp_path / "a.png", tmp_path / "b.png"],
+        tmp_path / "out",
+        profile,
+        workers=workers,
+        pipeline=fake_pipeline,
+        progress=log,
+    )
     assert [o.status for o in report.outcomes] == ["done", "done"]
     for name in ("a.png", "b.png"):
         assert [s for n, s in log.stages if n == name] == ["read", "disparity", "write"]
@@ -193,8 +218,9 @@ def test_batch_recording_is_one_timeline_of_shots(tmp_path):
     for name in ("a", "b", "c"):
         make_png(folder / f"{name}.png", 32, 40)
     merged = tmp_path / "all.rrd"
-    result = CliRunner().invoke(app, ["process", str(folder), "--out", str(tmp_path / "out"), "--workers", "2",
-                                      "--record", str(merged), "-q"])
+    result = CliRunner().invoke(
+        app, ["process", str(folder), "--out", str(tmp_path / "out"), "--workers", "2", "--record", str(merged), "-q"]
+    )
     assert result.exit_code == 0, result.output
     assert rrd_verify(merged).returncode == 0
     shots = sorted(set(read_columns(merged)["/shot/input"]["shot"]))

@@ -1,4 +1,5 @@
 """Tests of the bench calibration: target disparity, the thin-lens fit, the sweep over the simulated devices, faults."""
+
 from __future__ import annotations
 
 import tomllib
@@ -49,7 +50,7 @@ def test_target_disparity_matches_the_rendered_truth(distance_mm: float) -> None
 def test_three_parameters_are_not_identifiable_two_are() -> None:
     three = identifiability(_nominal(), SWEEP_MM, PARAMETERS)
     two = identifiability(_nominal(), SWEEP_MM, PARAMETERS[:2])
-    assert three.singular_values[-1] < 1e-6 and not three.identifiable      # A - B/u: rank 2
+    assert three.singular_values[-1] < 1e-6 and not three.identifiable  # A - B/u: rank 2
     assert two.identifiable and two.condition_number < 10
     with pytest.raises(CalibrationFitError, match="not identifiable"):
         fit_lens(SWEEP_MM, _nominal().disparity_px(SWEEP_MM), _nominal(), free=PARAMETERS)
@@ -70,7 +71,7 @@ def test_fit_recovers_a_deviating_lens_with_uncertainties() -> None:
 
 def test_an_offset_is_absorbed_into_the_focus_and_depths_stay_exact() -> None:
     truth = cal.SimDeviation(1.03, 1.02, 0.3).truth(PROFILE)
-    fit = fit_lens(SWEEP_MM, truth.disparity_px(SWEEP_MM), _nominal())   # offset held at 0
+    fit = fit_lens(SWEEP_MM, truth.disparity_px(SWEEP_MM), _nominal())  # offset held at 0
     assert fit.fitted.filter_centre_distance_mm == pytest.approx(truth.filter_centre_distance_mm, rel=5e-4)
     assert fit.fitted.focus_distance_mm == pytest.approx(truth.focus_distance_mm, rel=5e-3)
     assert fit.max_depth_error_mm < 1e-6
@@ -103,7 +104,7 @@ def _open_sim_rail(bench: cal.SimBench):
 
 
 def test_unplugged_rail_stops_with_its_port_and_the_rerun_shoots_only_the_rest(tmp_path: Path) -> None:
-    plan = cal.SweepPlan(-100, 150, 50, 900.57)          # 6 positions
+    plan = cal.SweepPlan(-100, 150, 50, 900.57)  # 6 positions
     bench, factory = _bench(plan)
     rail = _open_sim_rail(bench)
     port = rail.port
@@ -121,15 +122,16 @@ def test_unplugged_rail_stops_with_its_port_and_the_rerun_shoots_only_the_rest(t
     assert port in message and "rerun" in message and "2 of 6" in message
     assert len(bench.distances_shot_mm) == 2
 
-    rail = _open_sim_rail(bench)                          # plugged back in: a freshly powered controller
+    rail = _open_sim_rail(bench)  # plugged back in: a freshly powered controller
     with rail:
         outcome = cal.run_sweep(plan, PROFILE, tmp_path, camera_factory=factory, rail=rail)
     assert outcome.shot_positions_mm == [0.0, 50.0, 100.0, 150.0]
     assert [p.position_mm for p in outcome.points] == plan.positions_mm
     assert len(bench.distances_shot_mm) == 6
     # the camera photographed the target where the rail put it
-    assert bench.distances_shot_mm == pytest.approx([plan.distance_mm(plan.rail_mm(s)) for s in plan.positions_mm],
-                                                    abs=0.01)
+    assert bench.distances_shot_mm == pytest.approx(
+        [plan.distance_mm(plan.rail_mm(s)) for s in plan.positions_mm], abs=0.01
+    )
     # a third run has nothing to shoot
     rail = _open_sim_rail(bench)
     with rail:
@@ -155,9 +157,28 @@ def test_a_grbl_alarm_mid_sweep_names_the_port(tmp_path: Path) -> None:
 
 def test_full_command_writes_a_profile_close_to_the_simulated_truth(tmp_path: Path) -> None:
     out = tmp_path / "cal.toml"
-    result = CliRunner().invoke(app, ["calibrate", "--camera", "sim", "--rail", "sim", "--from", "-100", "--to",
-                                      "150", "--step", "25", "--profile", "paper-70d", "--out", str(out),
-                                      "--sim-scale", "0.1"])
+    result = CliRunner().invoke(
+        app,
+        [
+            "calibrate",
+            "--camera",
+            "sim",
+            "--rail",
+            "sim",
+            "--from",
+            "-100",
+            "--to",
+            "150",
+            "--step",
+            "25",
+            "--profile",
+            "paper-70d",
+            "--out",
+            str(out),
+            "--sim-scale",
+            "0.1",
+        ],
+    )
     assert result.exit_code == 0, result.output
     assert "sim truth" in result.output
     loaded = load_profile_file(out)

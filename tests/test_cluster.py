@@ -1,23 +1,24 @@
 """`mca process --cluster`: the same per-file task on a Dask scheduler and worker on 127.0.0.1 gives a local run's outputs."""
+
 from __future__ import annotations
 
 import pytest
+from test_batch import assert_same_outputs
+from test_process import make_cr2, make_png, make_tiff
 from typer.testing import CliRunner
 
 from mca.capture.batch import run_batch
 from mca.capture.cli import app
 from mca.capture.profiles import load_profile
-from test_batch import assert_same_outputs
-from test_process import make_cr2, make_png, make_tiff
 
 distributed = pytest.importorskip("distributed", reason="dask[distributed] is the 'cluster' extra")
 
 
 @pytest.fixture(scope="module")
 def cluster_address():
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp://",
-                                  host="127.0.0.1",
-                                  dashboard_address=None) as cluster:
+    with distributed.LocalCluster(
+        n_workers=1, threads_per_worker=1, processes=False, protocol="tcp://", host="127.0.0.1", dashboard_address=None
+    ) as cluster:
         yield cluster.scheduler_address
 
 

@@ -1,4 +1,5 @@
 """The config loader: defaults, search order, MCA_CONFIG, validation errors naming file and key, `mca config show`."""
+
 from __future__ import annotations
 
 import json
@@ -20,14 +21,15 @@ def _write(path: Path, text: str) -> Path:
 
 @pytest.fixture
 def files(tmp_path: Path) -> dict[str, Path]:
-    return {"system": tmp_path / "etc" / "mca" / "config.toml",
-            "user": tmp_path / "home" / ".config" / "mca" / "config.toml",
-            "home": tmp_path / "home"}
+    return {
+        "system": tmp_path / "etc" / "mca" / "config.toml",
+        "user": tmp_path / "home" / ".config" / "mca" / "config.toml",
+        "home": tmp_path / "home",
+    }
 
 
 def _load(files: dict[str, Path], **env: str) -> Config:
-    return load_config(env={"HOME": str(files["home"]), **env}, system_path=files["system"],
-                       user_path=files["user"])
+    return load_config(env={"HOME": str(files["home"]), **env}, system_path=files["system"], user_path=files["user"])
 
 
 def test_defaults_when_no_file_exists(files: dict[str, Path]) -> None:
@@ -40,7 +42,7 @@ def test_defaults_when_no_file_exists(files: dict[str, Path]) -> None:
 
 def test_user_file_wins_over_system_file_key_by_key(files: dict[str, Path]) -> None:
     _write(files["system"], 'camera = "sim"\nworkers = 4\nrail = "/dev/mca-rail"\n')
-    _write(files["user"], 'workers = 2\n')
+    _write(files["user"], "workers = 2\n")
     config = _load(files)
     assert config.workers == 2 and config.source_of("workers") == str(files["user"])
     assert config.camera == "sim" and config.source_of("camera") == str(files["system"])
@@ -50,7 +52,7 @@ def test_user_file_wins_over_system_file_key_by_key(files: dict[str, Path]) -> N
 
 def test_mca_config_replaces_both_searched_files(files: dict[str, Path], tmp_path: Path) -> None:
     _write(files["system"], 'camera = "sim"\n')
-    _write(files["user"], 'workers = 2\n')
+    _write(files["user"], "workers = 2\n")
     explicit = _write(tmp_path / "bench.toml", 'camera = "usb:3:17"\n')
     config = _load(files, MCA_CONFIG=str(explicit))
     assert config.camera == "usb:3:17" and config.source_of("camera") == str(explicit)
@@ -66,12 +68,16 @@ def test_missing_mca_config_file_is_an_error(files: dict[str, Path], tmp_path: P
 
 
 def test_user_path_follows_xdg_config_home(tmp_path: Path) -> None:
-    assert user_config_path({"XDG_CONFIG_HOME": str(tmp_path / "cfg"), "HOME": "/nowhere"}) == \
-        tmp_path / "cfg" / "mca" / "config.toml"
+    assert (
+        user_config_path({"XDG_CONFIG_HOME": str(tmp_path / "cfg"), "HOME": "/nowhere"})
+        == tmp_path / "cfg" / "mca" / "config.toml"
+    )
     assert user_config_path({"HOME": str(tmp_path)}) == tmp_path / ".config" / "mca" / "config.toml"
     # A relative XDG_CONFIG_HOME is invalid per the XDG spec and ignored.
-    assert user_config_path({"XDG_CONFIG_HOME": "rel", "HOME": str(tmp_path)}) == \
-        tmp_path / ".config" / "mca" / "config.toml"
+    assert (
+        user_config_path({"XDG_CONFIG_HOME": "rel", "HOME": str(tmp_path)})
+        == tmp_path / ".config" / "mca" / "config.toml"
+    )
 
 
 def test_relative_paths_are_relative_to_the_file(files: dict[str, Path]) -> None:
@@ -88,7 +94,7 @@ def test_builtin_profile_name_is_kept_as_a_name(files: dict[str, Path]) -> None:
 
 
 def test_bad_toml_names_the_file(files: dict[str, Path]) -> None:
-    _write(files["user"], 'workers = \n')
+    _write(files["user"], "workers = \n")
     with pytest.raises(ConfigError) as info:
         _load(files)
     assert info.value.path == str(files["user"])
@@ -97,7 +103,7 @@ def test_bad_toml_names_the_file(files: dict[str, Path]) -> None:
 
 
 def test_unknown_key_names_file_and_key_and_suggests(files: dict[str, Path]) -> None:
-    _write(files["system"], 'workres = 3\n')
+    _write(files["system"], "workres = 3\n")
     with pytest.raises(ConfigError) as info:
         _load(files)
     assert info.value.key == "workres" and info.value.path == str(files["system"])
@@ -105,22 +111,25 @@ def test_unknown_key_names_file_and_key_and_suggests(files: dict[str, Path]) -> 
     assert str(info.value).startswith(f"{files['system']}: key 'workres': ")
 
 
-@pytest.mark.parametrize("text, key, fragment", [
-    ('workers = "two"', "workers", "whole number"),
-    ('workers = 0', "workers", "between 1 and"),
-    ('workers = true', "workers", "whole number"),
-    ('workers = 2.5', "workers", "whole number"),
-    ('camera = "usb:1"', "camera", "usb:BUS:ADDR"),
-    ('camera = "usb:0:5"', "camera", "usb:BUS:ADDR"),
-    ('camera = "usb:1:200"', "camera", "usb:BUS:ADDR"),
-    ('camera = "canon"', "camera", "auto"),
-    ('camera = "ptpip:host:99999"', "camera", "ptpip:HOST[:PORT]"),
-    ('rail = "ttyUSB0"', "rail", "/dev/ttyUSB0"),
-    ('rail = 3', "rail", "non-empty string"),
-    ('profile = ""', "profile", "non-empty string"),
-    ('output_dir = ["a"]', "output_dir", "non-empty string"),
-    ('[camera]\nbus = 1', "camera", "non-empty string"),
-])
+@pytest.mark.parametrize(
+    "text, key, fragment",
+    [
+        ('workers = "two"', "workers", "whole number"),
+        ("workers = 0", "workers", "between 1 and"),
+        ("workers = true", "workers", "whole number"),
+        ("workers = 2.5", "workers", "whole number"),
+        ('camera = "usb:1"', "camera", "usb:BUS:ADDR"),
+        ('camera = "usb:0:5"', "camera", "usb:BUS:ADDR"),
+        ('camera = "usb:1:200"', "camera", "usb:BUS:ADDR"),
+        ('camera = "canon"', "camera", "auto"),
+        ('camera = "ptpip:host:99999"', "camera", "ptpip:HOST[:PORT]"),
+        ('rail = "ttyUSB0"', "rail", "/dev/ttyUSB0"),
+        ("rail = 3", "rail", "non-empty string"),
+        ('profile = ""', "profile", "non-empty string"),
+        ('output_dir = ["a"]', "output_dir", "non-empty string"),
+        ("[camera]\nbus = 1", "camera", "non-empty string"),
+    ],
+)
 def test_bad_values_name_file_and_key(files: dict[str, Path], text: str, key: str, fragment: str) -> None:
     _write(files["user"], text + "\n")
     with pytest.raises(ConfigError) as info:
@@ -130,9 +139,17 @@ def test_bad_values_name_file_and_key(files: dict[str, Path], text: str, key: st
     assert fragment in str(info.value)
 
 
-@pytest.mark.parametrize("camera, normalised", [("auto", "auto"), ("sim", "sim"), ("usb:001:005", "usb:1:5"),
-                                                ("usb:255:127", "usb:255:127"), ("ptpip:127.0.0.1", "ptpip:127.0.0.1"),
-                                                ("ptpip:eos70d.local:15740", "ptpip:eos70d.local:15740")])
+@pytest.mark.parametrize(
+    "camera, normalised",
+    [
+        ("auto", "auto"),
+        ("sim", "sim"),
+        ("usb:001:005", "usb:1:5"),
+        ("usb:255:127", "usb:255:127"),
+        ("ptpip:127.0.0.1", "ptpip:127.0.0.1"),
+        ("ptpip:eos70d.local:15740", "ptpip:eos70d.local:15740"),
+    ],
+)
 def test_camera_forms(files: dict[str, Path], camera: str, normalised: str) -> None:
     _write(files["user"], f'camera = "{camera}"\n')
     assert _load(files).camera == normalised

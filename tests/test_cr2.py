@@ -1,4 +1,5 @@
 """CR2 writer: LibRaw (through rawpy) and exiftool, as independent readers, must see exactly what was written."""
+
 from __future__ import annotations
 
 import json
@@ -65,7 +66,9 @@ def test_small_random_mosaic_round_trips_bit_exactly_through_libraw(tmp_path: Pa
     bits=st.integers(1, 14),
     seed=st.integers(0, 2**32 - 1),
 )
-def test_any_even_size_and_bit_depth_round_trips(tmp_path: Path, half_height: int, half_width: int, bits: int, seed: int) -> None:
+def test_any_even_size_and_bit_depth_round_trips(
+    tmp_path: Path, half_height: int, half_width: int, bits: int, seed: int
+) -> None:
     height, width = 2 * half_height, 2 * half_width
     if width + 84 > 4 * (height + 50):
         return  # refused as too elongated (tested separately)
@@ -153,7 +156,7 @@ def test_huffman_lengths_are_limited_to_16_bits_and_leave_the_all_ones_code_free
     lengths = _huffman_code_lengths(freq)
     assert set(lengths) == set(range(17))
     assert max(lengths.values()) <= 16
-    kraft = sum(2.0 ** -n for n in lengths.values())
+    kraft = sum(2.0**-n for n in lengths.values())
     assert kraft < 1.0  # strictly: one code point (all ones) stays unused
 
 
@@ -162,7 +165,12 @@ def test_lossless_jpeg_headers_follow_t81() -> None:
     jpeg = encode_lossless_jpeg(rows, components=2, precision=14)
     assert jpeg[:2] == b"\xff\xd8" and jpeg[-2:] == b"\xff\xd9"
     sof = jpeg.index(b"\xff\xc3")
-    precision, height, width, comps = jpeg[sof + 4], int.from_bytes(jpeg[sof + 5 : sof + 7], "big"), int.from_bytes(jpeg[sof + 7 : sof + 9], "big"), jpeg[sof + 9]
+    precision, height, width, comps = (
+        jpeg[sof + 4],
+        int.from_bytes(jpeg[sof + 5 : sof + 7], "big"),
+        int.from_bytes(jpeg[sof + 7 : sof + 9], "big"),
+        jpeg[sof + 9],
+    )
     assert (precision, height, width, comps) == (14, 30, 20, 2)
     sos = jpeg.index(b"\xff\xda")
     assert jpeg[sos + 4] == 2 and jpeg[sos + 9] == 1  # two components, predictor 1
@@ -172,7 +180,9 @@ def test_lossless_jpeg_headers_follow_t81() -> None:
 def exiftool() -> str:
     tool = shutil.which("exiftool")
     if tool is None:
-        pytest.skip("exiftool is not installed (Debian: apt-get install libimage-exiftool-perl); it is the independent metadata reference")
+        pytest.skip(
+            "exiftool is not installed (Debian: apt-get install libimage-exiftool-perl); it is the independent metadata reference"
+        )
     return tool
 
 

@@ -1,4 +1,5 @@
 """The bench deployment: udev rules (parsed and evaluated), systemd units (systemd-analyze verify), install.sh."""
+
 from __future__ import annotations
 
 import fnmatch
@@ -21,11 +22,46 @@ SYSTEM_UNITS = ("mca-tether@.service", "mca-watch.service")
 # --- udev rules ---------------------------------------------------------------
 
 # Keys udev(7) knows; "{}" marks keys that take an attribute or variable name.
-MATCH_KEYS = {"ACTION", "DEVPATH", "KERNEL", "KERNELS", "NAME", "SYMLINK", "SUBSYSTEM", "SUBSYSTEMS", "DRIVER",
-              "DRIVERS", "TAG", "TAGS", "TEST", "PROGRAM", "RESULT", "ATTR{}", "ATTRS{}", "ENV{}", "CONST{}",
-              "SYSCTL{}"}
-ASSIGN_KEYS = {"NAME", "SYMLINK", "OWNER", "GROUP", "MODE", "TAG", "SECLABEL{}", "ATTR{}", "SYSCTL{}", "ENV{}",
-               "RUN{}", "RUN", "LABEL", "GOTO", "IMPORT{}", "OPTIONS"}
+MATCH_KEYS = {
+    "ACTION",
+    "DEVPATH",
+    "KERNEL",
+    "KERNELS",
+    "NAME",
+    "SYMLINK",
+    "SUBSYSTEM",
+    "SUBSYSTEMS",
+    "DRIVER",
+    "DRIVERS",
+    "TAG",
+    "TAGS",
+    "TEST",
+    "PROGRAM",
+    "RESULT",
+    "ATTR{}",
+    "ATTRS{}",
+    "ENV{}",
+    "CONST{}",
+    "SYSCTL{}",
+}
+ASSIGN_KEYS = {
+    "NAME",
+    "SYMLINK",
+    "OWNER",
+    "GROUP",
+    "MODE",
+    "TAG",
+    "SECLABEL{}",
+    "ATTR{}",
+    "SYSCTL{}",
+    "ENV{}",
+    "RUN{}",
+    "RUN",
+    "LABEL",
+    "GOTO",
+    "IMPORT{}",
+    "OPTIONS",
+}
 TOKEN = re.compile(r'\s*([A-Z_]+)(\{[^}]*\})?\s*(==|!=|\+=|-=|:=|=)\s*"([^"]*)"\s*(,|$)')
 
 
@@ -42,8 +78,11 @@ def parse_rule(line: str) -> list[tuple[str, str | None, str, str]]:
 
 
 def rule_lines(path: Path = RULES) -> list[str]:
-    return [line.strip() for line in path.read_text(encoding="utf-8").splitlines()
-            if line.strip() and not line.lstrip().startswith("#")]
+    return [
+        line.strip()
+        for line in path.read_text(encoding="utf-8").splitlines()
+        if line.strip() and not line.lstrip().startswith("#")
+    ]
 
 
 def _udev_glob(pattern: str, value: str) -> bool:
@@ -89,13 +128,25 @@ def evaluate(device: dict[str, str], path: Path = RULES) -> dict[str, object]:
 
 
 def _usb_device(vendor: str, product: str, interfaces: str, action: str = "add") -> dict[str, str]:
-    return {"ACTION": action, "SUBSYSTEM": "usb", "ENV{DEVTYPE}": "usb_device", "ATTR{idVendor}": vendor,
-            "ATTR{idProduct}": product, "ENV{ID_USB_INTERFACES}": interfaces}
+    return {
+        "ACTION": action,
+        "SUBSYSTEM": "usb",
+        "ENV{DEVTYPE}": "usb_device",
+        "ATTR{idVendor}": vendor,
+        "ATTR{idProduct}": product,
+        "ENV{ID_USB_INTERFACES}": interfaces,
+    }
 
 
 def _serial(vendor: str, product: str) -> dict[str, str]:
-    return {"ACTION": "add", "SUBSYSTEM": "tty", "SUBSYSTEMS": "usb", "ATTRS{idVendor}": vendor,
-            "ATTRS{idProduct}": product, "KERNEL": "ttyUSB0"}
+    return {
+        "ACTION": "add",
+        "SUBSYSTEM": "tty",
+        "SUBSYSTEMS": "usb",
+        "ATTRS{idVendor}": vendor,
+        "ATTRS{idProduct}": product,
+        "KERNEL": "ttyUSB0",
+    }
 
 
 def test_every_udev_line_is_key_operator_value_pairs_with_known_keys() -> None:
@@ -144,20 +195,22 @@ def test_any_ptp_interface_gets_plugdev() -> None:
     assert other_canon["GROUP"] == "plugdev" and other_canon["ENV"]["ID_MCA_CAMERA"] == "canon"  # type: ignore[index]
 
 
-@pytest.mark.parametrize("device", [
-    _usb_device("046d", "c52b", ":030101:030102:"),       # a keyboard receiver
-    _usb_device("04a9", "1769", ":070102:ff0000:"),       # a Canon printer, no PTP interface
-    _usb_device("04a9", "3253", ":060101:", action="remove"),
-    {"ACTION": "add", "SUBSYSTEM": "usb", "ENV{DEVTYPE}": "usb_interface", "ENV{ID_USB_INTERFACES}": ":060101:"},
-    {"ACTION": "add", "SUBSYSTEM": "block", "KERNEL": "sda"},
-])
+@pytest.mark.parametrize(
+    "device",
+    [
+        _usb_device("046d", "c52b", ":030101:030102:"),  # a keyboard receiver
+        _usb_device("04a9", "1769", ":070102:ff0000:"),  # a Canon printer, no PTP interface
+        _usb_device("04a9", "3253", ":060101:", action="remove"),
+        {"ACTION": "add", "SUBSYSTEM": "usb", "ENV{DEVTYPE}": "usb_interface", "ENV{ID_USB_INTERFACES}": ":060101:"},
+        {"ACTION": "add", "SUBSYSTEM": "block", "KERNEL": "sda"},
+    ],
+)
 def test_other_devices_are_left_alone(device: dict[str, str]) -> None:
     result = evaluate(device)
     assert "GROUP" not in result and "MODE" not in result and not result["TAG"] and not result["SYMLINK"]
 
 
-@pytest.mark.parametrize("vendor, product", [("1a86", "7523"), ("0403", "6001"), ("2341", "0043"),
-                                             ("10c4", "ea60")])
+@pytest.mark.parametrize("vendor, product", [("1a86", "7523"), ("0403", "6001"), ("2341", "0043"), ("10c4", "ea60")])
 def test_grbl_serial_boards_get_dialout_and_mca_rail(vendor: str, product: str) -> None:
     result = evaluate(_serial(vendor, product))
     assert result["GROUP"] == "dialout" and result["MODE"] == "0660"
@@ -171,6 +224,7 @@ def test_unknown_serial_adaptor_is_left_alone() -> None:
 
 
 # --- install.sh ---------------------------------------------------------------
+
 
 def run_install(*args: str, home: Path, check: bool = True) -> subprocess.CompletedProcess[str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith("XDG_") and k != "MCA_CONFIG"}
@@ -204,13 +258,17 @@ def test_dry_run_system_install_lists_every_step_and_changes_nothing(tmp_path: P
     lines = out.splitlines()
     assert f"+ python3 -m venv {prefix}/venv" in lines
     assert any(line.startswith(f"+ {prefix}/venv/bin/python -m pip install --upgrade {REPO}") for line in lines)
-    assert any(re.match(r"\+ (useradd --system .*--groups plugdev\\?,dialout .* mca|usermod .*plugdev.* mca)$", l)
-               for l in lines), out
+    assert any(
+        re.match(r"\+ (useradd --system .*--groups plugdev\\?,dialout .* mca|usermod .*plugdev.* mca)$", l)
+        for l in lines
+    ), out
     assert "+ install -d -o mca -g mca -m 0750 /var/lib/mca /var/lib/mca/raw /var/lib/mca/processed" in lines
-    for source, dest in [("udev/70-mca-camera.rules", "/etc/udev/rules.d/70-mca-camera.rules"),
-                         ("systemd/mca-tether@.service", "/etc/systemd/system/mca-tether@.service"),
-                         ("systemd/mca-watch.service", "/etc/systemd/system/mca-watch.service"),
-                         ("config.example.toml", "/etc/mca/config.toml")]:
+    for source, dest in [
+        ("udev/70-mca-camera.rules", "/etc/udev/rules.d/70-mca-camera.rules"),
+        ("systemd/mca-tether@.service", "/etc/systemd/system/mca-tether@.service"),
+        ("systemd/mca-watch.service", "/etc/systemd/system/mca-watch.service"),
+        ("config.example.toml", "/etc/mca/config.toml"),
+    ]:
         if Path(dest).exists():
             continue  # this machine has it already: install.sh keeps or compares it
         assert any(line.startswith(f"+ render {DEPLOY / source} -> {dest} ") for line in lines), (dest, out)
@@ -224,10 +282,14 @@ def test_dry_run_user_only_stays_in_home(tmp_path: Path) -> None:
     lines = out.splitlines()
     assert f"+ python3 -m venv {home}/.local/share/mca/venv" in lines
     for name in SYSTEM_UNITS:
-        assert any(line.startswith(f"+ render {DEPLOY / 'systemd' / 'user' / name} -> "
-                                   f"{home}/.config/systemd/user/{name} ") for line in lines), out
-    assert any(line.startswith(f"+ render {DEPLOY / 'config.example.toml'} -> {home}/.config/mca/config.toml ")
-               for line in lines)
+        assert any(
+            line.startswith(f"+ render {DEPLOY / 'systemd' / 'user' / name} -> {home}/.config/systemd/user/{name} ")
+            for line in lines
+        ), out
+    assert any(
+        line.startswith(f"+ render {DEPLOY / 'config.example.toml'} -> {home}/.config/mca/config.toml ")
+        for line in lines
+    )
     assert "+ systemctl --user daemon-reload" in lines
     commands = [line for line in lines if line.startswith("+ ")]
     assert not any(re.search(r"useradd|usermod|groupadd|udevadm|-> /etc/", line) for line in commands), commands
@@ -236,8 +298,15 @@ def test_dry_run_user_only_stays_in_home(tmp_path: Path) -> None:
 
 
 def test_dry_run_honours_prefix_and_data_dir(tmp_path: Path) -> None:
-    out = run_install("--user-only", "--dry-run", "--prefix", str(tmp_path / "p"), "--data-dir",
-                      str(tmp_path / "d"), home=tmp_path / "home").stdout
+    out = run_install(
+        "--user-only",
+        "--dry-run",
+        "--prefix",
+        str(tmp_path / "p"),
+        "--data-dir",
+        str(tmp_path / "d"),
+        home=tmp_path / "home",
+    ).stdout
     assert f"+ python3 -m venv {tmp_path}/p/venv" in out.splitlines()
     assert f"+ mkdir -p {tmp_path}/d/raw" in out.splitlines()
 
@@ -255,8 +324,13 @@ def test_system_install_without_root_is_refused(tmp_path: Path) -> None:
         if shutil.which("setpriv") is None:
             pytest.skip("running as root without setpriv: cannot drop to an unprivileged user")
         command = ["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups", *command]
-    result = subprocess.run(command, capture_output=True, text=True, timeout=60,
-                            env={"PATH": os.environ.get("PATH", "/usr/bin:/bin"), "HOME": str(tmp_path)})
+    result = subprocess.run(
+        command,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={"PATH": os.environ.get("PATH", "/usr/bin:/bin"), "HOME": str(tmp_path)},
+    )
     assert result.returncode == 2, result.stdout + result.stderr
     assert "needs root" in result.stderr and "--user-only" in result.stderr
 
@@ -302,6 +376,7 @@ def test_destdir_stages_the_system_install(tmp_path: Path) -> None:
 
 # --- systemd units ------------------------------------------------------------
 
+
 def unit_settings(path: Path) -> dict[str, list[str]]:
     settings: dict[str, list[str]] = {}
     for line in path.read_text(encoding="utf-8").splitlines():
@@ -315,9 +390,14 @@ def unit_settings(path: Path) -> dict[str, list[str]]:
 def test_system_units_are_hardened_and_unprivileged(name: str) -> None:
     s = unit_settings(DEPLOY / "systemd" / name)
     assert s["User"] == ["mca"] and "DynamicUser" not in s
-    for key, value in [("NoNewPrivileges", "yes"), ("ProtectSystem", "strict"), ("PrivateTmp", "yes"),
-                       ("ProtectHome", "read-only"), ("ReadWritePaths", "/var/lib/mca"),
-                       ("Restart", "on-failure")]:
+    for key, value in [
+        ("NoNewPrivileges", "yes"),
+        ("ProtectSystem", "strict"),
+        ("PrivateTmp", "yes"),
+        ("ProtectHome", "read-only"),
+        ("ReadWritePaths", "/var/lib/mca"),
+        ("Restart", "on-failure"),
+    ]:
         assert s[key] == [value], key
     assert s["ExecStart"][0].startswith("/opt/mca/venv/bin/mca ")
     assert s["CapabilityBoundingSet"] == [""]
@@ -336,13 +416,15 @@ def test_tether_unit_reaches_camera_and_rail_and_names_its_folder() -> None:
 def test_watch_unit_runs_the_watcher_without_devices() -> None:
     s = unit_settings(DEPLOY / "systemd" / "mca-watch.service")
     assert s["PrivateDevices"] == ["yes"] and "DeviceAllow" not in s
-    assert s["ExecStart"][0].startswith("/opt/mca/venv/bin/mca process ${MCA_WATCH_DIR} --watch "
-                                        "--out ${MCA_PROCESSED_DIR} --workers ${MCA_WORKERS}")
+    assert s["ExecStart"][0].startswith(
+        "/opt/mca/venv/bin/mca process ${MCA_WATCH_DIR} --watch --out ${MCA_PROCESSED_DIR} --workers ${MCA_WORKERS}"
+    )
 
 
 SYSTEMD_ANALYZE = shutil.which("systemd-analyze")
 needs_systemd_analyze = pytest.mark.skipif(
-    SYSTEMD_ANALYZE is None, reason="systemd-analyze not installed (Debian: apt-get install systemd)")
+    SYSTEMD_ANALYZE is None, reason="systemd-analyze not installed (Debian: apt-get install systemd)"
+)
 
 
 def _fake_mca(prefix: Path) -> None:
@@ -356,8 +438,9 @@ def verify(unit_dir: Path, names: list[str], user: bool, runtime: Path) -> subpr
     env = dict(os.environ, XDG_RUNTIME_DIR=str(runtime), SYSTEMD_LOG_COLOR="0")
     runtime.mkdir(mode=0o700, exist_ok=True)
     args = [SYSTEMD_ANALYZE or "systemd-analyze"] + (["--user"] if user else []) + ["verify"]
-    return subprocess.run(args + [str(unit_dir / n) for n in names], capture_output=True, text=True, env=env,
-                          cwd=unit_dir, timeout=60)
+    return subprocess.run(
+        args + [str(unit_dir / n) for n in names], capture_output=True, text=True, env=env, cwd=unit_dir, timeout=60
+    )
 
 
 def _complaints(result: subprocess.CompletedProcess[str], names: list[str]) -> list[str]:
@@ -410,9 +493,11 @@ def test_exec_start_is_a_command_line_mca_accepts(name: str, tmp_path: Path) -> 
     for word in words[1:]:
         if word.startswith("$") and not word.startswith("${"):
             continue  # $MCA_*_ARGS: empty by default, split into words by systemd
-        args.append(re.sub(r"\$\{(\w+)\}", lambda m: env[m.group(1)], word).replace("%i", "bench")
-                    .replace("%h", str(tmp_path)))
+        args.append(
+            re.sub(r"\$\{(\w+)\}", lambda m: env[m.group(1)], word).replace("%i", "bench").replace("%h", str(tmp_path))
+        )
     assert words[0].endswith("/venv/bin/mca")
-    result = subprocess.run([sys.executable, "-m", "mca", *args, "--help"], capture_output=True, text=True,
-                            timeout=120, cwd=tmp_path)
+    result = subprocess.run(
+        [sys.executable, "-m", "mca", *args, "--help"], capture_output=True, text=True, timeout=120, cwd=tmp_path
+    )
     assert result.returncode == 0, f"{args}: {result.stdout}{result.stderr}"

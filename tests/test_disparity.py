@@ -1,4 +1,5 @@
 """Per-pixel MCA disparity and region refinement on synthetic shifted textures with known disparity."""
+
 from __future__ import annotations
 
 import cv2
@@ -27,7 +28,7 @@ def mca_image(sharp: np.ndarray, disparity_px: float) -> np.ndarray:
 def test_channel_shifts_follow_the_filter_geometry():
     shifts = channel_shifts(APERTURE)
     assert np.allclose(shifts[0], (0.5, 0.0)) and np.allclose(shifts[2], (-0.5, 0.0))
-    assert np.allclose(shifts[1], (0.0, -0.5))                    # green on top moves up (y down)
+    assert np.allclose(shifts[1], (0.0, -0.5))  # green on top moves up (y down)
     assert np.isclose(np.linalg.norm(shifts[0] - shifts[2]), 1.0)  # disparity is the red-blue shift
 
 
@@ -36,22 +37,23 @@ def test_uniform_disparity_recovered_sub_pixel(truth):
     sharp = textured((160, 200), 1)
     result = estimate_disparity(mca_image(sharp, truth), APERTURE, (-8.0, 8.0))
     core = result.disparity_px[30:-30, 30:-30]
-    assert abs(float(np.median(core)) - truth) < 0.15          # the coarse stage; regions are refined
+    assert abs(float(np.median(core)) - truth) < 0.15  # the coarse stage; regions are refined
     assert float(np.mean(np.abs(core - truth) < 0.25)) > 0.9
     assert result.confidence[30:-30, 30:-30].mean() > 0.05
 
 
 def test_flat_areas_get_low_confidence():
     sharp = textured((120, 160), 2)
-    sharp[:, :60] = (0.5, 0.4, 0.3)                                  # a flat band
+    sharp[:, :60] = (0.5, 0.4, 0.3)  # a flat band
     result = estimate_disparity(mca_image(sharp, 2.0), APERTURE, (-6.0, 6.0))
     assert result.confidence[20:-20, 5:40].mean() < 0.3 * result.confidence[20:-20, 100:-20].mean()
 
 
 def test_integer_wta_has_no_sub_pixel():
     sharp = textured((120, 160), 3)
-    result = estimate_disparity(mca_image(sharp, 1.3), APERTURE, (-4.0, 4.0),
-                                DisparityParams(step_px=1.0, subpixel=False))
+    result = estimate_disparity(
+        mca_image(sharp, 1.3), APERTURE, (-4.0, 4.0), DisparityParams(step_px=1.0, subpixel=False)
+    )
     assert set(np.unique(result.disparity_px)) <= set(np.arange(-5.0, 6.0))
 
 
@@ -61,8 +63,9 @@ def test_region_refinement_is_precise(truth):
     planes = mca_image(sharp, truth)
     labels = np.ones(planes.shape[:2], np.int32)
     weights = np.ones(planes.shape[:2], np.float32)
-    refined, dips = refine_regions(planes, APERTURE, labels, weights, {1: (0.0, 0.0, truth + 0.6)}, {1: False},
-                                   RefineParams())
+    refined, dips = refine_regions(
+        planes, APERTURE, labels, weights, {1: (0.0, 0.0, truth + 0.6)}, {1: False}, RefineParams()
+    )
     assert abs(refined[1][2] - truth) < 0.1
     assert dips[1] > 0.2
 
@@ -70,15 +73,31 @@ def test_region_refinement_is_precise(truth):
 def test_region_refinement_fits_a_slant():
     sharp = textured((200, 300), 5, blur_px=2.5)
     ys, xs = np.mgrid[0:200, 0:300].astype(np.float32)
-    slope, offset = 0.012, -1.0                                      # disparity -1 .. +2.6 across the image
+    slope, offset = 0.012, -1.0  # disparity -1 .. +2.6 across the image
     d = slope * xs + offset
     shifts = channel_shifts(APERTURE)
-    planes = np.dstack([cv2.remap(np.ascontiguousarray(sharp[..., c]), xs - d * np.float32(shifts[c, 0]),
-                                  ys - d * np.float32(shifts[c, 1]), cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
-                        for c in range(3)])
+    planes = np.dstack(
+        [
+            cv2.remap(
+                np.ascontiguousarray(sharp[..., c]),
+                xs - d * np.float32(shifts[c, 0]),
+                ys - d * np.float32(shifts[c, 1]),
+                cv2.INTER_CUBIC,
+                borderMode=cv2.BORDER_REFLECT,
+            )
+            for c in range(3)
+        ]
+    )
     labels = np.ones((200, 300), np.int32)
-    refined, _ = refine_regions(planes, APERTURE, labels, np.ones((200, 300), np.float32),
-                                {1: (0.008, 0.0, -0.5)}, {1: True}, RefineParams(cell_px=40))
+    refined, _ = refine_regions(
+        planes,
+        APERTURE,
+        labels,
+        np.ones((200, 300), np.float32),
+        {1: (0.008, 0.0, -0.5)},
+        {1: True},
+        RefineParams(cell_px=40),
+    )
     a, b, c = refined[1]
     assert abs(a - slope) < 0.002 and abs(b) < 0.002
     assert abs((a * 150 + b * 100 + c) - (slope * 150 + offset)) < 0.08

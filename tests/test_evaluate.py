@@ -1,4 +1,5 @@
 """Table 2 evaluation: matching, errors, region count and order on a small simulated scene, and the CLI."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -14,8 +15,10 @@ from mca.processing.simulate import SensorModel, SimulationOptics, render
 
 
 def test_rows_and_summary():
-    rows = [ObjectRow("A", "a", 30.0, {"ours": 31.0, "peer": 27.0}),
-            ObjectRow("B", "b", 0.0, {"ours": 0.5, "peer": 0.0})]
+    rows = [
+        ObjectRow("A", "a", 30.0, {"ours": 31.0, "peer": 27.0}),
+        ObjectRow("B", "b", 0.0, {"ours": 0.5, "peer": 0.0}),
+    ]
     evaluation = SceneEvaluation("x", rows, 3, 3, True)
     assert np.isclose(rows[0].rel_error("ours"), 1 / 30) and rows[1].rel_error("ours") is None
     summary = summarise([evaluation], ["ours", "peer"])
@@ -29,11 +32,14 @@ def test_paper_f_beats_the_peers():
     sensor = SensorModel()
     rendering = render(paper_scene("paper-f", optics.focus_distance_mm), optics, sensor, seed=2)
     planes = bayer_planes(rendering.mosaic, sensor.black_level, sensor.white_level)
-    result = run_pipeline(planes, optics.aperture, optics.mca, pixel_scale=2.0,
-                          channel_offsets_px=RGGB_HALF_RES_OFFSETS_PX)
+    result = run_pipeline(
+        planes, optics.aperture, optics.mca, pixel_scale=2.0, channel_offsets_px=RGGB_HALF_RES_OFFSETS_PX
+    )
     aligned = align_channel_samples(planes, RGGB_HALF_RES_OFFSETS_PX)
-    peers = {"sgbm": sgbm_disparity(aligned, optics.aperture, (-8.0, 24.0)) * 2.0,
-             "wta": colour_line_wta(aligned, optics.aperture, (-8.0, 24.0)) * 2.0}
+    peers = {
+        "sgbm": sgbm_disparity(aligned, optics.aperture, (-8.0, 24.0)) * 2.0,
+        "wta": colour_line_wta(aligned, optics.aperture, (-8.0, 24.0)) * 2.0,
+    }
     evaluation = evaluate_scene(rendering.truth, rendering.labels, result, optics.mca, peers)
     assert evaluation.region_count == evaluation.true_region_count == 4
     assert evaluation.order_correct

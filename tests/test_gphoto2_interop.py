@@ -1,4 +1,5 @@
 """Independent check: libgphoto2 (python-gphoto2 and Debian's gphoto2 CLI) drives `mca camera serve-sim` over PTP/IP."""
+
 from __future__ import annotations
 
 import shutil
@@ -20,8 +21,19 @@ def _free_port() -> int:
 @pytest.fixture()
 def served_sim():
     port = _free_port()
-    proc = subprocess.Popen([sys.executable, "-c", "from mca.capture.cli import main; main()", "camera", "serve-sim",
-                             "--ptpip", f"127.0.0.1:{port}"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "from mca.capture.cli import main; main()",
+            "camera",
+            "serve-sim",
+            "--ptpip",
+            f"127.0.0.1:{port}",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
     try:
         deadline = time.monotonic() + 20
         while True:
@@ -30,7 +42,9 @@ def served_sim():
                 break
             except OSError:
                 if time.monotonic() > deadline or proc.poll() is not None:
-                    pytest.fail(f"serve-sim did not start: {proc.stderr.read().decode() if proc.poll() is not None else 'timeout'}")
+                    pytest.fail(
+                        f"serve-sim did not start: {proc.stderr.read().decode() if proc.poll() is not None else 'timeout'}"
+                    )
                 time.sleep(0.1)
         yield port
     finally:
@@ -74,12 +88,18 @@ def test_python_gphoto2_summary_then_capture_and_download(served_sim: int) -> No
 @pytest.mark.skipif(shutil.which("gphoto2") is None, reason="Debian's gphoto2 command line is not installed")
 def test_gphoto2_cli_capture_and_download_gives_a_cr2_rawpy_opens(served_sim: int, tmp_path: Path) -> None:
     port = f"ptpip:127.0.0.1:{served_sim}:{served_sim}"
-    summary = subprocess.run(["gphoto2", "--port", port, "--summary"], capture_output=True, text=True, timeout=60,
-                             cwd=tmp_path)
+    summary = subprocess.run(
+        ["gphoto2", "--port", port, "--summary"], capture_output=True, text=True, timeout=60, cwd=tmp_path
+    )
     assert summary.returncode == 0, summary.stderr
     assert "Model: Canon EOS 70D" in summary.stdout
-    run = subprocess.run(["gphoto2", "--port", port, "--capture-image-and-download", "--filename", "shot.cr2"],
-                         capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    run = subprocess.run(
+        ["gphoto2", "--port", port, "--capture-image-and-download", "--filename", "shot.cr2"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=tmp_path,
+    )
     assert run.returncode == 0, run.stderr
     data = (tmp_path / "shot.cr2").read_bytes()
     assert data == _expected_first_shot()

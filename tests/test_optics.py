@@ -1,4 +1,5 @@
 """The optics of accurate depth against the paper's Table 1 and against the Gaussian lens equation."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -41,18 +42,18 @@ INTEGER_DISPARITIES_PX = [s * p for p in (4, 6, 8, 10, 12, 16, 18, 20) for s in 
 # Entries where the paper contradicts its own equations, with the value the equation gives.
 # Second block vs eq. 2 from the nearest integer disparity (tolerance 0.0005 mm):
 EQ2_CONTRADICTIONS = {
-    ("d", "A"): 0.3224,   # printed 0.323; +18 px gives 0.3224 (0.0006 off)
-    ("f", "B"): 0.2154,   # printed 0.217; +12 px gives 0.2154, -12 px gives -0.2172
+    ("d", "A"): 0.3224,  # printed 0.323; +18 px gives 0.3224 (0.0006 off)
+    ("f", "B"): 0.2154,  # printed 0.217; +12 px gives 0.2154, -12 px gives -0.2172
 }
 # Third block vs eq. 13 applied to the second block (tolerance 1.5 mm):
 EQ13_CONTRADICTIONS = {
-    ("c", "A"): -72.51,   # printed -71
-    ("c", "D"): -25.33,   # printed +26 for -0.0720: sign lost (+0.0720 would give +26.76)
-    ("d", "A"): 133.09,   # printed 126
+    ("c", "A"): -72.51,  # printed -71
+    ("c", "D"): -25.33,  # printed +26 for -0.0720: sign lost (+0.0720 would give +26.76)
+    ("d", "A"): 133.09,  # printed 126
     ("d", "D"): -115.29,  # printed -67
-    ("e", "A"): -72.51,   # printed -44
-    ("e", "B"): -72.51,   # printed -44
-    ("f", "A"): 116.35,   # printed 129
+    ("e", "A"): -72.51,  # printed -44
+    ("e", "B"): -72.51,  # printed -44
+    ("f", "A"): 116.35,  # printed 129
 }
 
 
@@ -66,7 +67,7 @@ def test_table1_second_block_from_integer_disparities_eq2():
     candidates = {px: optics.inter_image_depth_mm(px * PITCH_MM, D_LS_MM, D_A_MM) for px in INTEGER_DISPARITIES_PX}
     contradictions = {}
     for row, label, printed in _entries(INTER_IMAGE_MM):
-        px, computed = min(candidates.items(), key=lambda item: abs(item[1] - printed))
+        _px, computed = min(candidates.items(), key=lambda item: abs(item[1] - printed))
         if abs(computed - printed) > 0.0005:
             contradictions[(row, label)] = round(computed, 4)
     assert contradictions == EQ2_CONTRADICTIONS

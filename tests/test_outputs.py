@@ -1,4 +1,5 @@
 """The output writers: PLY and GLB parsed back, TIFF/PNG/JSON round trips, atomic writes leave nothing behind."""
+
 from __future__ import annotations
 
 import json
@@ -43,8 +44,9 @@ def _quad(name, z_mm, half_mm, colour):
     texture = np.zeros((6, 8, 4), np.uint8)
     texture[..., :3] = colour
     texture[..., 3] = 255
-    corners = np.array([[-half_mm, -half_mm, z_mm], [half_mm, -half_mm, z_mm],
-                        [half_mm, half_mm, z_mm], [-half_mm, half_mm, z_mm]])
+    corners = np.array(
+        [[-half_mm, -half_mm, z_mm], [half_mm, -half_mm, z_mm], [half_mm, half_mm, z_mm], [-half_mm, half_mm, z_mm]]
+    )
     return outputs.TexturedQuad(name, corners, outputs.encode_png(texture), extras={"distance_mm": z_mm})
 
 
@@ -92,8 +94,8 @@ def test_glb_quad_faces_the_camera():
     # after the root transform (y up, z toward the viewer) the triangles wind counter-clockwise
     data = outputs.encode_glb([_quad("q", 1000.0, 10.0, (1, 2, 3))])
     length = struct.unpack_from("<I", data, 12)[0]
-    gltf = json.loads(data[20:20 + length])
-    binary = data[20 + length + 8:]
+    gltf = json.loads(data[20 : 20 + length])
+    binary = data[20 + length + 8 :]
     corners = outputs.glb_accessor(gltf, binary, 0).astype(float)
     world = corners * [1, -1, -1]
     tri = world[outputs.glb_accessor(gltf, binary, 2).ravel()[:3]]
@@ -131,15 +133,15 @@ def test_srgb_curve():
 def test_failed_write_leaves_no_temporary_file_and_keeps_the_old_one(tmp_path, monkeypatch):
     target = tmp_path / "result.json"
     outputs.write_json(target, {"version": 1})
-    with pytest.raises(RuntimeError, match="disk full"):
-        with outputs.atomic_path(target) as tmp:
-            tmp.write_text("half a fi")
-            raise RuntimeError("disk full")
+    with pytest.raises(RuntimeError, match="disk full"), outputs.atomic_path(target) as tmp:
+        tmp.write_text("half a fi")
+        raise RuntimeError("disk full")
     assert json.loads(target.read_text()) == {"version": 1}
     with pytest.raises(TypeError):
         outputs.write_png(tmp_path / "bad.png", np.zeros((2, 2), np.float64))
     with pytest.raises(ValueError):
         outputs.write_tiff_float32(tmp_path / "bad.tiff", np.zeros((2, 2, 2)))
+
     def no_space(fd):
         raise OSError(28, "No space left on device")
 
@@ -154,7 +156,7 @@ def test_failed_write_leaves_no_temporary_file_and_keeps_the_old_one(tmp_path, m
 
 def test_upsample_and_back_projection():
     labels = np.array([[1, 2], [3, 4]], np.uint16)
-    up = upsample_nearest(labels, 2.0, (5, 3))    # odd input size: the last row/column repeats
+    up = upsample_nearest(labels, 2.0, (5, 3))  # odd input size: the last row/column repeats
     assert up.tolist() == [[1, 1, 2, 2, 2], [1, 1, 2, 2, 2], [3, 3, 4, 4, 4]]
     camera = Pinhole(pixel_pitch_mm=0.004, sensor_distance_mm=52.63, width_px=101, height_px=51)
     point = camera.back_project(np.array([100.0]), np.array([0.0]), np.array([1000.0]))[0]

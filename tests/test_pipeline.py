@@ -1,4 +1,5 @@
 """The whole pipeline on a small simulated paper scene: regions, order, depths, 3D images and the recorder."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -7,11 +8,16 @@ import pytest
 from mca.capture.profiles import load_profile
 from mca.processing.evaluate import bayer_planes
 from mca.processing.mpi import composite
-from mca.processing.pipeline import (PipelineParams, RGGB_HALF_RES_OFFSETS_PX, align_channel_samples,
-                                 default_disparity_range_px, run_pipeline)
-from mca.processing.sketch import BoundaryParams
+from mca.processing.pipeline import (
+    RGGB_HALF_RES_OFFSETS_PX,
+    PipelineParams,
+    align_channel_samples,
+    default_disparity_range_px,
+    run_pipeline,
+)
 from mca.processing.scenes import paper_scene, target_scene
 from mca.processing.simulate import SensorModel, SimulationOptics, render
+from mca.processing.sketch import BoundaryParams
 
 
 class ListRecorder:
@@ -32,8 +38,14 @@ def paper_a():
     rendering = render(paper_scene("paper-a", optics.focus_distance_mm), optics, sensor, seed=3)
     planes = bayer_planes(rendering.mosaic, sensor.black_level, sensor.white_level)
     recorder = ListRecorder()
-    result = run_pipeline(planes, optics.aperture, optics.mca, pixel_scale=2.0,
-                          channel_offsets_px=RGGB_HALF_RES_OFFSETS_PX, recorder=recorder)
+    result = run_pipeline(
+        planes,
+        optics.aperture,
+        optics.mca,
+        pixel_scale=2.0,
+        channel_offsets_px=RGGB_HALF_RES_OFFSETS_PX,
+        recorder=recorder,
+    )
     return optics, rendering, result, recorder
 
 
@@ -51,13 +63,17 @@ def test_bayer_alignment_moves_channels_by_exactly_their_offsets():
     ys, xs = np.mgrid[0:200, 0:300].astype(np.float64)
 
     def pattern(x, y):
-        return 0.5 + 0.2 * np.sin(2 * np.pi * x / 23 + 0.3) + 0.15 * np.cos(2 * np.pi * y / 17) \
+        return (
+            0.5
+            + 0.2 * np.sin(2 * np.pi * x / 23 + 0.3)
+            + 0.15 * np.cos(2 * np.pi * y / 17)
             + 0.1 * np.sin(2 * np.pi * (x + y) / 11)
+        )
 
     planes = np.dstack([pattern(xs + dx, ys + dy) for dx, dy in RGGB_HALF_RES_OFFSETS_PX]).astype(np.float32)
     aligned = align_channel_samples(planes, RGGB_HALF_RES_OFFSETS_PX)
     error = np.abs(aligned[8:-8, 8:-8] - pattern(xs, ys)[8:-8, 8:-8, None])
-    assert error.max() < 2e-3                                   # 8.4e-4 measured
+    assert error.max() < 2e-3  # 8.4e-4 measured
 
 
 def test_target_at_the_focus_distance_reads_zero_disparity_through_the_bayer_mosaic():
@@ -67,24 +83,30 @@ def test_target_at_the_focus_distance_reads_zero_disparity_through_the_bayer_mos
     rendering = render(target_scene(optics.focus_distance_mm), optics, sensor, seed=0)
     planes = bayer_planes(rendering.mosaic, sensor.black_level, sensor.white_level)
     recorder = ListRecorder()
-    result = run_pipeline(planes, optics.aperture, optics.mca, pixel_scale=2.0,
-                          channel_offsets_px=RGGB_HALF_RES_OFFSETS_PX, recorder=recorder)
+    result = run_pipeline(
+        planes,
+        optics.aperture,
+        optics.mca,
+        pixel_scale=2.0,
+        channel_offsets_px=RGGB_HALF_RES_OFFSETS_PX,
+        recorder=recorder,
+    )
     per_pixel = recorder.stages["disparity"]["disparity_px"]
     h, w = per_pixel.shape
     # measured +0.010 px on the analysis grid and +0.004 px refined (INTER_CUBIC alignment: -0.19 and -0.12 px)
-    assert abs(float(np.median(per_pixel[h // 8:-h // 8, w // 8:-w // 8]))) < 0.03
+    assert abs(float(np.median(per_pixel[h // 8 : -h // 8, w // 8 : -w // 8]))) < 0.03
     target = max(result.regions, key=lambda r: r.pixels)
     assert target.in_focus and abs(target.disparity_px) < 0.02
     assert abs(target.inter_object_depth_mm) < 0.15
 
 
 def test_regions_order_and_depths(paper_a):
-    optics, rendering, result, _ = paper_a
+    _optics, rendering, result, _ = paper_a
     truth = rendering.truth
-    assert len(result.regions) == len(truth["objects"]) + 1       # five pots and the wall
+    assert len(result.regions) == len(truth["objects"]) + 1  # five pots and the wall
     by_label = {}
     for obj in truth["objects"]:
-        mask = rendering.labels[::2, ::2][:result.labels.shape[0], :result.labels.shape[1]] == obj["id"]
+        mask = rendering.labels[::2, ::2][: result.labels.shape[0], : result.labels.shape[1]] == obj["id"]
         ids, counts = np.unique(result.labels[mask], return_counts=True)
         by_label[obj["paper_label"]] = next(r for r in result.regions if r.id == ids[np.argmax(counts)])
     errors = []
@@ -94,10 +116,11 @@ def test_regions_order_and_depths(paper_a):
             assert region.in_focus and result.focus_region == region.id
             assert abs(region.inter_object_depth_mm) < 4.0
         else:
-            errors.append(abs(region.inter_object_depth_mm - obj["inter_object_depth_mm"])
-                          / abs(obj["inter_object_depth_mm"]))
-    assert np.median(errors) < 0.06 and max(errors) < 0.2         # at quarter size; full size is ~2x better
-    ranks = [by_label[label].order for label in "EDCBA"]          # E nearest ... A farthest
+            errors.append(
+                abs(region.inter_object_depth_mm - obj["inter_object_depth_mm"]) / abs(obj["inter_object_depth_mm"])
+            )
+    assert np.median(errors) < 0.06 and max(errors) < 0.2  # at quarter size; full size is ~2x better
+    ranks = [by_label[label].order for label in "EDCBA"]  # E nearest ... A farthest
     assert ranks == sorted(ranks)
     wall = max(result.regions, key=lambda r: r.disparity_px)
     assert wall.order == len(result.regions) - 1
@@ -118,9 +141,9 @@ def test_three_d_images(paper_a):
     _, _, result, _ = paper_a
     assert len(result.layers) == len(result.regions)
     disparities = [layer.disparity_px for layer in result.layers]
-    assert disparities == sorted(disparities, reverse=True)        # back to front
+    assert disparities == sorted(disparities, reverse=True)  # back to front
     alpha = sum(layer.rgba[..., 3] for layer in result.layers)
-    assert np.allclose(alpha, 1.0)                                  # the planes tile the image
+    assert np.allclose(alpha, 1.0)  # the planes tile the image
     flat = composite(result.layers)
     assert flat.shape == result.all_in_focus.shape
     for layer in result.layers:
@@ -151,8 +174,9 @@ def _evaluate_paper_scene(name: str, scale: float, seed: int = 0):
     sensor = SensorModel()
     rendering = render(paper_scene(name, optics.focus_distance_mm), optics, sensor, seed=seed)
     planes = bayer_planes(rendering.mosaic, sensor.black_level, sensor.white_level)
-    result = run_pipeline(planes, optics.aperture, optics.mca, pixel_scale=2.0,
-                          channel_offsets_px=RGGB_HALF_RES_OFFSETS_PX)
+    result = run_pipeline(
+        planes, optics.aperture, optics.mca, pixel_scale=2.0, channel_offsets_px=RGGB_HALF_RES_OFFSETS_PX
+    )
     return evaluate_scene(rendering.truth, rendering.labels, result, optics.mca), result
 
 
@@ -162,19 +186,19 @@ def test_paper_e_spatula_is_one_region_behind_its_three_occluders():
     `mca evaluate`; at half size the per-region crop refinement reads the tomato D ~8 % far, a known gap
     logged in docs/pipeline.md)."""
     evaluation, _ = _evaluate_paper_scene("paper-e", 1.0)
-    assert evaluation.region_count == evaluation.true_region_count == 6       # five objects and the wall
-    assert evaluation.order_correct, evaluation.notes                          # ranks and every true occlusion
+    assert evaluation.region_count == evaluation.true_region_count == 6  # five objects and the wall
+    assert evaluation.order_correct, evaluation.notes  # ranks and every true occlusion
     rows = {r.label: r for r in evaluation.rows}
     assert rows["E"].rel_error("ours") < 0.03
     assert max(r.rel_error("ours") for r in evaluation.rows if r.rel_error("ours") is not None) < 0.05
-    assert rows["C"].abs_error_mm("ours") < 2.0                                # the carrot, in focus
+    assert rows["C"].abs_error_mm("ours") < 2.0  # the carrot, in focus
 
 
 def test_paper_g_slanted_knife_is_one_plane():
     """The knife (a flat blade from -30 to +100 mm, its middle hidden by the carrot) is one slanted region whose
     plane gives both ends (full size, the issue's setting)."""
     evaluation, result = _evaluate_paper_scene("paper-g", 1.0)
-    assert evaluation.region_count == evaluation.true_region_count == 3       # knife, carrot, wall
+    assert evaluation.region_count == evaluation.true_region_count == 3  # knife, carrot, wall
     assert evaluation.order_correct, evaluation.notes
     rows = {r.label: r for r in evaluation.rows}
     assert rows["A"].rel_error("ours") < 0.05 and rows["B"].rel_error("ours") < 0.05
@@ -185,7 +209,8 @@ def test_paper_g_slanted_knife_is_one_plane():
 def _boundary_accuracy(labels: np.ndarray, truth: np.ndarray, width_px: int = 2) -> float:
     """Fraction of the pixels within `width_px` of a true object boundary whose region is (mostly) that object."""
     import cv2
-    truth = truth[:labels.shape[0], :labels.shape[1]].astype(np.int64)
+
+    truth = truth[: labels.shape[0], : labels.shape[1]].astype(np.int64)
     regions, objects = int(labels.max()) + 1, int(truth.max()) + 1
     joint = np.bincount(labels.ravel().astype(np.int64) * objects + truth.ravel(), minlength=regions * objects)
     object_of = joint.reshape(regions, objects).argmax(axis=1)
@@ -205,10 +230,15 @@ def test_region_boundaries_follow_the_objects_at_processing_resolution():
     truth = rendering.labels[::2, ::2]
     runs = {}
     for name, boundaries in (("blocky", None), ("snapped", BoundaryParams())):
-        runs[name] = run_pipeline(planes, optics.aperture, optics.mca, pixel_scale=2.0,
-                                  channel_offsets_px=RGGB_HALF_RES_OFFSETS_PX,
-                                  params=PipelineParams(boundaries=boundaries))
+        runs[name] = run_pipeline(
+            planes,
+            optics.aperture,
+            optics.mca,
+            pixel_scale=2.0,
+            channel_offsets_px=RGGB_HALF_RES_OFFSETS_PX,
+            params=PipelineParams(boundaries=boundaries),
+        )
     blocky, snapped = (_boundary_accuracy(runs[k].labels, truth) for k in ("blocky", "snapped"))
-    assert snapped >= blocky + 0.12 and snapped >= 0.72, (blocky, snapped)       # measured 0.58 -> 0.79
+    assert snapped >= blocky + 0.12 and snapped >= 0.72, (blocky, snapped)  # measured 0.58 -> 0.79
     assert [r.disparity_px for r in runs["blocky"].regions] == [r.disparity_px for r in runs["snapped"].regions]
     assert "boundaries" in runs["snapped"].timings_s

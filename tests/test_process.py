@@ -1,4 +1,5 @@
 """`mca process` and `process_file`: CR2, TIFF and PNG to the full set of outputs, bad files, resume and --force."""
+
 from __future__ import annotations
 
 import json
@@ -19,8 +20,16 @@ from mca.capture.pipeline_app import RESULT_NAME, process_file
 from mca.capture.profiles import load_profile
 from mca.processing.result import DepthResult, MultiPlaneImage, Region
 
-FULL_SET = {"depth.tiff", "regions.png", "result.json", "all_in_focus.png", "layers/00.png", "layers/01.png",
-            "scene.ply", "scene.glb"}
+FULL_SET = {
+    "depth.tiff",
+    "regions.png",
+    "result.json",
+    "all_in_focus.png",
+    "layers/00.png",
+    "layers/01.png",
+    "scene.ply",
+    "scene.glb",
+}
 
 
 def fake_pipeline(planes, aperture, optics, *, pixel_scale=1.0, recorder=None, **options) -> DepthResult:
@@ -30,14 +39,25 @@ def fake_pipeline(planes, aperture, optics, *, pixel_scale=1.0, recorder=None, *
         raise ValueError("nothing to see: the planes are black")
     height, width = planes.shape[:2]
     labels = np.ones((height, width), np.uint16)
-    labels[:, width // 2:] = 2
-    near, far = (-4.0, 6.0) if optics is None else (float(optics.disparity_px_at_distance(950.0)),
-                                                     float(optics.disparity_px_at_distance(1100.0)))
+    labels[:, width // 2 :] = 2
+    near, far = (
+        (-4.0, 6.0)
+        if optics is None
+        else (float(optics.disparity_px_at_distance(950.0)), float(optics.disparity_px_at_distance(1100.0)))
+    )
     disparity = np.where(labels == 1, near, far).astype(np.float32)
     regions = []
     for rid, d, order, occludes in ((1, near, 0, [2]), (2, far, 1, [])):
-        region = Region(id=rid, pixels=int((labels == rid).sum()), order=order, occludes=occludes, disparity_px=d,
-                        in_focus=False, confidence=0.9, slant=(0.001, 0.0, d) if rid == 2 else None)
+        region = Region(
+            id=rid,
+            pixels=int((labels == rid).sum()),
+            order=order,
+            occludes=occludes,
+            disparity_px=d,
+            in_focus=False,
+            confidence=0.9,
+            slant=(0.001, 0.0, d) if rid == 2 else None,
+        )
         if optics is not None:
             estimate = optics.from_disparity(d)
             region.inter_image_depth_mm = estimate.inter_image_depth_mm
@@ -46,17 +66,33 @@ def fake_pipeline(planes, aperture, optics, *, pixel_scale=1.0, recorder=None, *
         regions.append(region)
     depth = None if optics is None else optics.distance_mm(disparity).astype(np.float32)
     layers = []
-    for region in reversed(regions):     # deliberately back to front: the application orders them
+    for region in reversed(regions):  # deliberately back to front: the application orders them
         rgba = np.dstack([planes, (labels == region.id).astype(np.float32)])
-        layers.append(MultiPlaneImage(region.id, rgba.astype(np.float32), region.inter_image_depth_mm,
-                                      region.inter_object_depth_mm, region.disparity_px))
+        layers.append(
+            MultiPlaneImage(
+                region.id,
+                rgba.astype(np.float32),
+                region.inter_image_depth_mm,
+                region.inter_object_depth_mm,
+                region.disparity_px,
+            )
+        )
     if recorder is not None:
         recorder.record("disparity", disparity_px=disparity)
         recorder.timing("disparity", 0.001)
-    return DepthResult(labels=labels, disparity_px=disparity, raw_disparity_px=disparity,
-                       confidence=np.full((height, width), 0.9, np.float32), depth_mm=depth,
-                       all_in_focus=planes.astype(np.float32), regions=regions, focus_region=None, layers=layers,
-                       pixel_scale=pixel_scale, timings_s={"sketch": 0.002})
+    return DepthResult(
+        labels=labels,
+        disparity_px=disparity,
+        raw_disparity_px=disparity,
+        confidence=np.full((height, width), 0.9, np.float32),
+        depth_mm=depth,
+        all_in_focus=planes.astype(np.float32),
+        regions=regions,
+        focus_region=None,
+        layers=layers,
+        pixel_scale=pixel_scale,
+        timings_s={"sketch": 0.002},
+    )
 
 
 def _pattern(height: int, width: int) -> np.ndarray:
@@ -77,7 +113,7 @@ def make_tiff(path: Path, height: int = 40, width: int = 56) -> Path:
 def make_cr2(path: Path, height: int = 64, width: int = 96) -> Path:
     rgb = _pattern(height // 2, width // 2)
     mosaic = np.zeros((height, width), np.uint16)
-    scale = lambda c: (2048 + c * (15000 - 2048)).astype(np.uint16)   # noqa: E731
+    scale = lambda c: (2048 + c * (15000 - 2048)).astype(np.uint16)  # noqa: E731
     mosaic[0::2, 0::2] = scale(rgb[..., 0])
     mosaic[0::2, 1::2] = scale(rgb[..., 1])
     mosaic[1::2, 0::2] = scale(rgb[..., 1])
@@ -99,7 +135,7 @@ def profile():
 
 @pytest.mark.parametrize("maker, size", [(make_png, (64, 48)), (make_tiff, (56, 40)), (make_cr2, (96, 64))])
 def test_process_file_writes_the_full_set(tmp_path, profile, maker, size):
-    source = maker(tmp_path / f"shot{ {make_png: '.png', make_tiff: '.tiff', make_cr2: '.CR2'}[maker]}")
+    source = maker(tmp_path / f"shot{ {make_png: '.png', make_tiff: '.tiff', make_cr2: '.CR2'}[maker] }")
     outcome = process_file(source, tmp_path / "out", profile, pipeline=fake_pipeline)
     assert outcome.status == "done", outcome.reason
     folder = tmp_path / "out" / "shot"
@@ -115,12 +151,21 @@ def test_process_file_writes_the_full_set(tmp_path, profile, maker, size):
     assert result["input"] == str(source) and result["profile"] == "paper-70d"
     assert result["input_size_px"] == [width, height] and result["mode"] == "distance"
     by_id = {r["id"]: r for r in result["regions"]}
-    assert set(by_id[1]) >= {"id", "pixels", "order", "occludes", "disparity_px", "inter_image_depth_mm",
-                             "inter_object_depth_mm", "distance_mm", "slant"}
+    assert set(by_id[1]) >= {
+        "id",
+        "pixels",
+        "order",
+        "occludes",
+        "disparity_px",
+        "inter_image_depth_mm",
+        "inter_object_depth_mm",
+        "distance_mm",
+        "slant",
+    }
     assert by_id[1]["pixels"] + by_id[2]["pixels"] == width * height
     assert by_id[1]["order"] == 0 and by_id[1]["occludes"] == [2] and by_id[1]["slant"] is None
     assert by_id[2]["slant"] == {"plane": [0.001, 0.0, pytest.approx(by_id[2]["disparity_px"])]}
-    assert by_id[1]["distance_mm"] == pytest.approx(950.0, abs=0.5)   # eqs. 2, 13/14 vs the exact thin lens
+    assert by_id[1]["distance_mm"] == pytest.approx(950.0, abs=0.5)  # eqs. 2, 13/14 vs the exact thin lens
     assert by_id[2]["distance_mm"] == pytest.approx(1100.0, abs=2.0)
     # the depth map holds each region's distance at input resolution
     assert np.allclose(depth[labels == 1], by_id[1]["distance_mm"])
@@ -133,12 +178,17 @@ def test_process_file_writes_the_full_set(tmp_path, profile, maker, size):
     # every point of the cloud lies at one of the two region distances, in front of the camera
     vertices, _ = outputs.read_ply(folder / "scene.ply")
     assert len(vertices) > 0
-    assert np.allclose(np.sort(np.unique(np.round(vertices["z"], 2))),
-                       np.round([by_id[1]["distance_mm"], by_id[2]["distance_mm"]], 2), atol=0.01)
+    assert np.allclose(
+        np.sort(np.unique(np.round(vertices["z"], 2))),
+        np.round([by_id[1]["distance_mm"], by_id[2]["distance_mm"]], 2),
+        atol=0.01,
+    )
     gltf, binary = outputs.read_glb(folder / "scene.glb")
     assert len(gltf["meshes"]) == 2
-    z = [float(outputs.glb_accessor(gltf, binary, m["primitives"][0]["attributes"]["POSITION"])[0, 2])
-         for m in gltf["meshes"]]
+    z = [
+        float(outputs.glb_accessor(gltf, binary, m["primitives"][0]["attributes"]["POSITION"])[0, 2])
+        for m in gltf["meshes"]
+    ]
     assert z == pytest.approx([by_id[1]["distance_mm"], by_id[2]["distance_mm"]], rel=1e-6)
 
 
@@ -149,8 +199,15 @@ def test_process_file_disparity_only(tmp_path, profile):
     outcome = process_file(make_png(tmp_path / "a.png"), tmp_path / "out", no_lens, pipeline=fake_pipeline)
     assert outcome.status == "done", outcome.reason
     folder = tmp_path / "out" / "a"
-    assert files_under(folder) == {"depth.tiff", "disparity.tiff", "regions.png", "result.json", "all_in_focus.png",
-                                   "layers/00.png", "layers/01.png"}
+    assert files_under(folder) == {
+        "depth.tiff",
+        "disparity.tiff",
+        "regions.png",
+        "result.json",
+        "all_in_focus.png",
+        "layers/00.png",
+        "layers/01.png",
+    }
     assert np.isnan(tifffile.imread(folder / "depth.tiff")).all()
     disparity = tifffile.imread(folder / "disparity.tiff")
     assert disparity.shape == (48, 64) and set(np.unique(disparity)) == {-4.0, 6.0}
@@ -224,7 +281,6 @@ def test_cli_usage_errors(tmp_path):
     assert result.exit_code == 2 and "no input files" in result.output
 
 
-
 @pytest.mark.parametrize("maker, suffix", [(make_cr2, ".CR2"), (make_tiff, ".tiff"), (make_png, ".png")])
 def test_cli_full_set_with_the_real_pipeline(tmp_path, maker, suffix):
     source = maker(tmp_path / f"shot{suffix}")
@@ -271,8 +327,7 @@ def _pipeline_without_layers(planes, aperture, optics, **options) -> DepthResult
 
 
 def test_scene_quads_fall_back_to_region_masks(tmp_path, profile):
-    outcome = process_file(make_png(tmp_path / "a.png"), tmp_path / "out", profile,
-                           pipeline=_pipeline_without_layers)
+    outcome = process_file(make_png(tmp_path / "a.png"), tmp_path / "out", profile, pipeline=_pipeline_without_layers)
     assert outcome.status == "done", outcome.reason
     gltf, binary = outputs.read_glb(tmp_path / "out" / "a" / "scene.glb")
     assert [n["extras"]["region_id"] for n in gltf["nodes"][1:]] == [1, 2]
@@ -302,9 +357,9 @@ run_batch([Path(sys.argv[1])], Path(sys.argv[2]), load_profile("paper-70d"), pip
 def test_a_batch_killed_half_way_resumes_without_redoing_finished_files(tmp_path):
     """SIGKILL a real batch process mid-way; the rerun redoes only what had not finished."""
     import signal
-    import time
     import subprocess
     import sys
+    import time
 
     inputs = tmp_path / "in"
     inputs.mkdir()
@@ -318,7 +373,7 @@ def test_a_batch_killed_half_way_resumes_without_redoing_finished_files(tmp_path
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and not any((out / n / RESULT_NAME).exists() for n in names[:3]):
         time.sleep(0.02)
-    time.sleep(0.5)                         # let it get into the middle of another file
+    time.sleep(0.5)  # let it get into the middle of another file
     proc.send_signal(signal.SIGKILL)
     proc.wait(10)
     finished = {n for n in names if (out / n / RESULT_NAME).exists()}
@@ -330,4 +385,4 @@ def test_a_batch_killed_half_way_resumes_without_redoing_finished_files(tmp_path
     assert {n for n, s in statuses.items() if s == "done"} == set(names) - finished
     assert {n: (out / n / RESULT_NAME).stat().st_mtime_ns for n in finished} == stamps
     for name in names:
-        assert files_under(out / name) == FULL_SET   # no half-written or temporary files survive
+        assert files_under(out / name) == FULL_SET  # no half-written or temporary files survive

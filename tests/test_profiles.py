@@ -1,4 +1,5 @@
 """Camera profiles: built-ins load, and malformed files are refused with the file and the field named."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -73,8 +74,10 @@ def test_focus_distance_gives_sensor_distance(tmp_path):
         (lambda t: t.replace("focal_length_mm = 50.0", "focal_length_mm = -50.0"), "lens.focal_length_mm"),
         (lambda t: t.replace("focus_distance_mm = 1000.0", "focus_distance_mm = 40.0"), "lens.focus_distance_mm"),
         (lambda t: t.replace("focus_distance_mm = 1000.0", "sensor_distance_mm = 45.0"), "lens.sensor_distance_mm"),
-        (lambda t: t.replace("focus_distance_mm = 1000.0", "focus_distance_mm = 1000.0\nsensor_distance_mm = 52.0"),
-         "lens.focus_distance_mm"),
+        (
+            lambda t: t.replace("focus_distance_mm = 1000.0", "focus_distance_mm = 1000.0\nsensor_distance_mm = 52.0"),
+            "lens.focus_distance_mm",
+        ),
         (lambda t: t.replace("red = [6.0, 0.0]", "red = [20.0, 0.0]"), "aperture.red"),
         (lambda t: t.replace("blue = [-6.0, 0.0]", "blue = [5.0, 0.5]"), "aperture.blue"),
         (lambda t: t.replace("green = [0.0, 6.0]", 'green = "top"'), "aperture.green"),
@@ -136,8 +139,9 @@ def test_cli_optics_json_for_the_issue_example():
 
 def test_cli_optics_from_distance_and_from_inter_image_depth_agree():
     by_distance = json.loads(_mca("optics", "--distance-mm", "1090", "--json").stdout)
-    by_depth = json.loads(_mca("optics", "--inter-image-depth-mm", str(by_distance["inter_image_depth_mm"]),
-                               "--json").stdout)
+    by_depth = json.loads(
+        _mca("optics", "--inter-image-depth-mm", str(by_distance["inter_image_depth_mm"]), "--json").stdout
+    )
     assert by_distance["distance_mm"] == pytest.approx(1090.0, abs=1e-3)
     assert by_depth["distance_mm"] == pytest.approx(1090.0, abs=0.01)
     assert by_depth["disparity_px"] == pytest.approx(by_distance["disparity_px"], abs=1e-4)

@@ -1,4 +1,5 @@
 """The PTP codec: containers, datasets and EOS event lists round-trip, and hostile bytes raise only ProtocolError."""
+
 from __future__ import annotations
 
 import struct
@@ -7,7 +8,15 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mca.devices.ptp.codec import ProtocolError, Reader, pack_command, pack_data, pack_string, parse_container, parse_header
+from mca.devices.ptp.codec import (
+    ProtocolError,
+    Reader,
+    pack_command,
+    pack_data,
+    pack_string,
+    parse_container,
+    parse_header,
+)
 from mca.devices.ptp.codes import ContainerType, EosProp
 from mca.devices.ptp.datasets import (
     DevicePropDesc,
@@ -44,7 +53,7 @@ from mca.devices.sim_eos70d.responder import SimEos70D
 
 def test_command_container_bytes_match_the_standard_layout() -> None:
     raw = pack_command(0x1002, 0, (1,))
-    assert raw == bytes.fromhex("10000000" "0100" "0210" "00000000" "01000000")
+    assert raw == bytes.fromhex("10000000010002100000000001000000")
     c = parse_container(raw)
     assert (c.type, c.code, c.transaction_id, c.params) == (ContainerType.COMMAND, 0x1002, 0, (1,))
 
@@ -80,8 +89,14 @@ def test_device_info_of_the_simulated_70d_round_trips_and_lacks_initiate_capture
 def test_storage_and_object_info_round_trip_with_documented_offsets() -> None:
     s = StorageInfo(max_capacity_bytes=16 << 30, free_space_bytes=1 << 30, description="SD", volume_label="EOS")
     assert parse_storage_info(pack_storage_info(s)) == s
-    o = ObjectInfo(storage_id=0x20001, object_format=0xB103, compressed_size_bytes=25_000_000, parent_object=7,
-                   filename="IMG_0001.CR2", capture_date="20240101T120000")
+    o = ObjectInfo(
+        storage_id=0x20001,
+        object_format=0xB103,
+        compressed_size_bytes=25_000_000,
+        parent_object=7,
+        filename="IMG_0001.CR2",
+        capture_date="20240101T120000",
+    )
     raw = pack_object_info(o)
     assert struct.unpack_from("<H", raw, 4)[0] == 0xB103 and struct.unpack_from("<I", raw, 8)[0] == 25_000_000
     assert struct.unpack_from("<I", raw, 38)[0] == 7 and raw[52:53] == b"\x0d"  # filename count at offset 52
@@ -103,17 +118,21 @@ def test_eos_event_records_use_the_documented_offsets() -> None:
     assert struct.unpack_from("<H", raw, 0x10)[0] == 0xB103
     assert struct.unpack_from("<I", raw, 0x1C)[0] == 25_000_000
     assert struct.unpack_from("<I", raw, 0x20)[0] == 0x90000002
-    assert raw[0x28:0x28 + 12] == b"IMG_0042.CR2"
+    assert raw[0x28 : 0x28 + 12] == b"IMG_0042.CR2"
     assert raw[-8:] == struct.pack("<II", 8, 0)
     ram = EosRequestObjectTransfer(5, 0xB103, 1234, "IMG_0001.CR2")
     raw2 = pack_eos_events([ram])
-    assert struct.unpack_from("<I", raw2, 0x14)[0] == 1234 and raw2[0x1C:0x1C + 12] == b"IMG_0001.CR2"
+    assert struct.unpack_from("<I", raw2, 0x14)[0] == 1234 and raw2[0x1C : 0x1C + 12] == b"IMG_0001.CR2"
 
 
 def test_eos_event_list_round_trips() -> None:
-    events = [EosObjectAdded(1, 2, 0xB103, 3, 4, "A.CR2"), EosRequestObjectTransfer(9, 0xB103, 10, "B.CR2"),
-              EosPropValueChanged(EosProp.ISO_SPEED, 0x48), EosAvailListChanged(EosProp.ISO_SPEED, 3, (0x48, 0x50)),
-              EosCameraStatus(True)]
+    events = [
+        EosObjectAdded(1, 2, 0xB103, 3, 4, "A.CR2"),
+        EosRequestObjectTransfer(9, 0xB103, 10, "B.CR2"),
+        EosPropValueChanged(EosProp.ISO_SPEED, 0x48),
+        EosAvailListChanged(EosProp.ISO_SPEED, 3, (0x48, 0x50)),
+        EosCameraStatus(True),
+    ]
     back = parse_eos_events(pack_eos_events(events))
     assert back[0] == events[0] and back[1] == events[1] and back[4] == events[4]
     assert back[2].prop == EosProp.ISO_SPEED and back[2].value == 0x48
@@ -136,9 +155,19 @@ def test_data_container_round_trip() -> None:
     assert c.payload == b"\x01\x02\x03" and c.type == ContainerType.DATA
 
 
-PARSERS = [parse_container, parse_device_info, parse_storage_info, parse_object_info, parse_prop_desc,
-           parse_eos_events, lambda b: parse_packet_header(b), parse_init_command_request,
-           parse_operation_request, parse_operation_response, parse_start_data]
+PARSERS = [
+    parse_container,
+    parse_device_info,
+    parse_storage_info,
+    parse_object_info,
+    parse_prop_desc,
+    parse_eos_events,
+    lambda b: parse_packet_header(b),
+    parse_init_command_request,
+    parse_operation_request,
+    parse_operation_response,
+    parse_start_data,
+]
 
 
 _SEEDS = [
@@ -151,8 +180,13 @@ _SEEDS = [
 
 
 @settings(max_examples=10_000, deadline=None, suppress_health_check=list(HealthCheck), database=None)
-@given(st.integers(0, len(_SEEDS) - 1), st.integers(0, 4096), st.integers(0, 255), st.integers(0, 4096),
-       st.binary(max_size=12))
+@given(
+    st.integers(0, len(_SEEDS) - 1),
+    st.integers(0, 4096),
+    st.integers(0, 255),
+    st.integers(0, 4096),
+    st.binary(max_size=12),
+)
 def test_fuzzed_bytes_raise_nothing_but_protocol_error(seed: int, pos: int, value: int, cut: int, tail: bytes) -> None:
     """Each case flips one byte of a valid dataset, truncates it and appends junk, then feeds every parser."""
     data = bytearray(_SEEDS[seed])

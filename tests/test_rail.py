@@ -1,4 +1,5 @@
 """The GRBL rail driven through pyserial on a real pseudo-terminal served by the simulated controller."""
+
 from __future__ import annotations
 
 from collections.abc import Iterator

@@ -1,4 +1,5 @@
 """`mca rail home|move|status` against `--rail sim` and a missing port."""
+
 from __future__ import annotations
 
 from typer.testing import CliRunner

@@ -1,4 +1,5 @@
 """Rail faults end in a clear RailError naming the port, and the rail reconnects to resume a sweep."""
+
 from __future__ import annotations
 
 from collections.abc import Iterator

@@ -1,4 +1,5 @@
 """The GRBL 1.1 codec: messages parsed from firmware text, garbage refused, rail/machine mapping."""
+
 from __future__ import annotations
 
 import pytest
@@ -48,7 +49,9 @@ def test_splitter_handles_crlf_across_chunks_and_refuses_binary_and_endless_line
     splitter = gp.LineSplitter()
     assert splitter.feed(b"o") == []
     assert splitter.feed(b"k\r\n<Idle|MPos:0.000,0.000,0.000|FS:0,0>\r") == [
-        "ok", "<Idle|MPos:0.000,0.000,0.000|FS:0,0>"]
+        "ok",
+        "<Idle|MPos:0.000,0.000,0.000|FS:0,0>",
+    ]
     with pytest.raises(gp.GrblProtocolError, match="non-ASCII"):
         splitter.feed(b"\xff\xfe\x01\r\n")
     with pytest.raises(gp.GrblProtocolError, match="no line ending"):

@@ -1,4 +1,5 @@
 """The simulated GRBL firmware stepped with a fake clock: replies, alarms, limits and motion at the feed rate."""
+
 from __future__ import annotations
 
 import pytest

@@ -1,4 +1,5 @@
 """read_raw: planes against independent numpy references, metadata round trips, every input format, and every bad input."""
+
 from __future__ import annotations
 
 import math
@@ -51,7 +52,11 @@ def small_cr2(tmp_path: Path) -> tuple[Path, np.ndarray, Cr2Metadata]:
         lens_model="EF-S18-55mm f/3.5-5.6 IS STM",
         focus_distance_m=1.25,
     )
-    return write_cr2(tmp_path / "IMG_0001.CR2", mosaic, black_level=BLACK, white_level=WHITE, metadata=meta), mosaic, meta
+    return (
+        write_cr2(tmp_path / "IMG_0001.CR2", mosaic, black_level=BLACK, white_level=WHITE, metadata=meta),
+        mosaic,
+        meta,
+    )
 
 
 # ----------------------------------------------------------------------------- CR2
@@ -69,7 +74,7 @@ def test_cr2_planes_equal_an_independent_computation_from_the_mosaic(small_cr2) 
 
 
 def test_cr2_metadata_round_trips(small_cr2) -> None:
-    path, _, meta = small_cr2
+    path, _, _meta = small_cr2
     m = read_raw(path).metadata
     assert (m.make, m.model) == ("Canon", "Canon EOS 70D")
     assert m.iso == 400
@@ -254,14 +259,16 @@ def test_truncated_cr2(small_cr2, tmp_path: Path) -> None:
 
 def test_jpeg_renamed_to_cr2(tmp_path: Path) -> None:
     path = tmp_path / "IMG_0003.CR2"
-    ok, jpg = cv2.imencode(".jpg", np.zeros((8, 8, 3), np.uint8))
+    _ok, jpg = cv2.imencode(".jpg", np.zeros((8, 8, 3), np.uint8))
     path.write_bytes(jpg.tobytes())
     with pytest.raises(RawReadError) as err:
         read_raw(path)
     _assert_names_file(err.value, path, "jpeg", "not a camera raw")
 
 
-@pytest.mark.parametrize("content", [b"", b"\x00" * 100, b"hello, not a raw file at all"], ids=["empty", "zeros", "text"])
+@pytest.mark.parametrize(
+    "content", [b"", b"\x00" * 100, b"hello, not a raw file at all"], ids=["empty", "zeros", "text"]
+)
 def test_empty_or_garbage_cr2(tmp_path: Path, content: bytes) -> None:
     path = tmp_path / "bad.CR2"
     path.write_bytes(content)

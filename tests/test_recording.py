@@ -4,6 +4,7 @@ Recordings are checked with `rerun rrd verify`, `rerun rrd print` (entity -> arc
 SDK's reader `rerun.chunk.RrdReader` (image sizes, values); inputs are a small CR2 written by
 `capture.cr2.write_cr2` and a small PNG, both read by the real `capture.raw.read_raw`.
 """
+
 from __future__ import annotations
 
 import re
@@ -16,10 +17,19 @@ import cv2
 import numpy as np
 import pytest
 
-from mca.capture.recording import (RerunRecorder, child_environment, disable_rerun_analytics, display_size,
-                               merge_recordings, plane_mesh, quiet_rerun_environment, rerun_analytics_config_path,
-                               rerun_analytics_disabled, rerun_executable)
 from mca.capture.profiles import load_profile
+from mca.capture.recording import (
+    RerunRecorder,
+    child_environment,
+    disable_rerun_analytics,
+    display_size,
+    merge_recordings,
+    plane_mesh,
+    quiet_rerun_environment,
+    rerun_analytics_config_path,
+    rerun_analytics_disabled,
+    rerun_executable,
+)
 from mca.processing.optics import MCAOptics
 from mca.processing.result import DepthResult, MultiPlaneImage, Region
 
@@ -60,8 +70,8 @@ def synthetic_result(height: int, width: int, optics: MCAOptics | None, pixel_sc
     """Three regions: left half at -5 px, right half at +8 px, a box in front at +2 px... built by hand."""
     labels = np.zeros((height, width), np.uint16)
     labels[:, : width // 2] = 1
-    labels[:, width // 2:] = 2
-    labels[height // 4: height // 2, width // 4: width // 2] = 3
+    labels[:, width // 2 :] = 2
+    labels[height // 4 : height // 2, width // 4 : width // 2] = 3
     disparity = {1: -5.0, 2: 8.0, 3: -9.0}
     order = {3: 0, 1: 1, 2: 2}
     occludes = {3: [1], 1: [2], 2: []}
@@ -74,16 +84,40 @@ def synthetic_result(height: int, width: int, optics: MCAOptics | None, pixel_sc
     regions = []
     for region_id in (1, 2, 3):
         distance = None if optics is None else float(optics.distance_mm(disparity[region_id]))
-        regions.append(Region(id=region_id, pixels=int((labels == region_id).sum()), order=order[region_id],
-                              occludes=occludes[region_id], disparity_px=disparity[region_id],
-                              distance_mm=distance, confidence=0.9))
-    layers = [MultiPlaneImage(region_id=r.id, rgba=np.dstack([colour, (labels == r.id).astype(np.float32)]),
-                              inter_image_depth_mm=None, inter_object_depth_mm=None, disparity_px=r.disparity_px)
-              for r in sorted(regions, key=lambda r: r.order)]
-    return DepthResult(labels=labels, disparity_px=disparity_px, raw_disparity_px=disparity_px + 0.25,
-                       confidence=np.full((height, width), 0.75, np.float32), depth_mm=depth, all_in_focus=colour,
-                       regions=regions, focus_region=None, layers=layers, pixel_scale=pixel_scale,
-                       timings_s={"disparity": 0.5, "sketch": 0.25})
+        regions.append(
+            Region(
+                id=region_id,
+                pixels=int((labels == region_id).sum()),
+                order=order[region_id],
+                occludes=occludes[region_id],
+                disparity_px=disparity[region_id],
+                distance_mm=distance,
+                confidence=0.9,
+            )
+        )
+    layers = [
+        MultiPlaneImage(
+            region_id=r.id,
+            rgba=np.dstack([colour, (labels == r.id).astype(np.float32)]),
+            inter_image_depth_mm=None,
+            inter_object_depth_mm=None,
+            disparity_px=r.disparity_px,
+        )
+        for r in sorted(regions, key=lambda r: r.order)
+    ]
+    return DepthResult(
+        labels=labels,
+        disparity_px=disparity_px,
+        raw_disparity_px=disparity_px + 0.25,
+        confidence=np.full((height, width), 0.75, np.float32),
+        depth_mm=depth,
+        all_in_focus=colour,
+        regions=regions,
+        focus_region=None,
+        layers=layers,
+        pixel_scale=pixel_scale,
+        timings_s={"disparity": 0.5, "sketch": 0.25},
+    )
 
 
 def make_cr2(path: Path, height: int = 96, width: int = 144) -> Path:
@@ -104,8 +138,9 @@ def make_png(path: Path, height: int = 90, width: int = 120) -> Path:
 
 def rrd_print(path: Path) -> dict[str, set[str]]:
     """Entity path -> archetype names, parsed from `rerun rrd print` (one line per chunk)."""
-    proc = subprocess.run([RERUN, "rrd", "print", str(path)], capture_output=True, text=True, check=True,
-                          env=child_environment())
+    proc = subprocess.run(
+        [RERUN, "rrd", "print", str(path)], capture_output=True, text=True, check=True, env=child_environment()
+    )
     entities: dict[str, set[str]] = {}
     for match in re.finditer(r"- (/\S*) - data columns: \[([^\]]*)\]", proc.stdout):
         names = {column.split(":")[0] for column in match.group(2).split()}
@@ -114,8 +149,7 @@ def rrd_print(path: Path) -> dict[str, set[str]]:
 
 
 def rrd_verify(path: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([RERUN, "rrd", "verify", str(path)], capture_output=True, text=True,
-                          env=child_environment())
+    return subprocess.run([RERUN, "rrd", "verify", str(path)], capture_output=True, text=True, env=child_environment())
 
 
 def read_columns(path: Path) -> dict[str, dict[str, list]]:
@@ -185,20 +219,33 @@ def test_recording_verifies_and_lists_every_stage(recordings, kind: str) -> None
     assert "Scalars" in entities["/shot/stages/disparity/candidates"]
     # the words the issue's done-when looks for in `rerun rrd print`
     listing = " ".join(f"{e} {' '.join(a)}" for e, a in entities.items())
-    for word in ("raw", "channels", "disparity", "segmentation", "depth", "multi_plane", "Pinhole", "points",
-                 "Scalars"):
+    for word in (
+        "raw",
+        "channels",
+        "disparity",
+        "segmentation",
+        "depth",
+        "multi_plane",
+        "Pinhole",
+        "points",
+        "Scalars",
+    ):
         assert word in listing
 
 
 @pytest.mark.parametrize("kind", ["cr2", "png"])
 def test_images_have_the_display_size_of_the_input(recordings, kind: str) -> None:
-    path, result, frame = recordings[kind]
+    path, _result, frame = recordings[kind]
     scale = 2.0 if frame.half_resolution else 1.0
     h, w = frame.planes.shape[:2]
     width, height = display_size(int(w * scale), int(h * scale))
     columns = read_columns(path)
-    for entity, archetype in (("/shot/segmentation", "SegmentationImage"), ("/shot/depth", "DepthImage"),
-                              ("/shot/disparity/region_model", "Image"), ("/shot/disparity/confidence", "Image")):
+    for entity, archetype in (
+        ("/shot/segmentation", "SegmentationImage"),
+        ("/shot/depth", "DepthImage"),
+        ("/shot/disparity/region_model", "Image"),
+        ("/shot/disparity/confidence", "Image"),
+    ):
         fmt = one(columns, entity, f"{archetype}:format")
         assert (fmt["width"], fmt["height"]) == (width, height), entity
     for entity in ("/shot/input", "/shot/raw/red", "/shot/channels/after"):
@@ -213,7 +260,7 @@ def test_images_have_the_display_size_of_the_input(recordings, kind: str) -> Non
 
 
 def test_multi_plane_images_are_cropped_and_put_in_place(recordings) -> None:
-    path, result, frame = recordings["png"]  # 90 x 120 planes: the multi-plane frame is the processing grid
+    path, result, _frame = recordings["png"]  # 90 x 120 planes: the multi-plane frame is the processing grid
     columns = read_columns(path)
     h, w = result.labels.shape
     nearest = one(columns, "/shot/multi_plane/00", "Image:format")  # region 3, the box in front
@@ -237,7 +284,7 @@ def test_depth_is_in_mm_with_meter_1000_and_matches_the_regions(recordings) -> N
 
 
 def test_pinhole_uses_d_ls_over_pitch_and_the_image_centre(recordings) -> None:
-    path, result, frame = recordings["cr2"]
+    path, _result, frame = recordings["cr2"]
     columns = read_columns(path)
     matrix = np.array(one(columns, "/world/camera", "Pinhole:image_from_camera")).reshape(3, 3).T  # column-major
     width, height = one(columns, "/world/camera", "Pinhole:resolution")
@@ -263,7 +310,7 @@ def test_points_and_planes_sit_at_the_region_distances(recordings) -> None:
 
 
 def test_timings_are_scalars_per_stage_and_the_order_table_lists_regions_front_to_back(recordings) -> None:
-    path, result, _ = recordings["cr2"]
+    path, _result, _ = recordings["cr2"]
     columns = read_columns(path)
     assert columns["/timings/disparity"]["Scalars:scalars"][0] == [0.5]
     assert columns["/timings/sketch"]["Scalars:scalars"][0] == [0.25]
@@ -302,8 +349,9 @@ def test_two_recorders_coexist_and_merge(tmp_path: Path) -> None:
 def test_plane_mesh_covers_only_the_opaque_part() -> None:
     rgba = np.zeros((40, 80, 4), np.float32)
     rgba[:20, :40] = (0.5, 0.5, 0.5, 1.0)
-    vertices, triangles, colours = plane_mesh(rgba, 2.0, focal_px=100.0, centre_px=(40.0, 20.0), pixel_scale=1.0,
-                                              cells_across=8)
+    vertices, triangles, colours = plane_mesh(
+        rgba, 2.0, focal_px=100.0, centre_px=(40.0, 20.0), pixel_scale=1.0, cells_across=8
+    )
     used = vertices[np.unique(triangles)]
     assert np.allclose(used[:, 2], 2.0)
     assert used[:, 0].min() == pytest.approx(-40 * 2.0 / 100) and used[:, 0].max() == pytest.approx(0.0)
@@ -399,8 +447,17 @@ def test_process_file_records_a_verifiable_recording(tmp_path: Path, maker, name
     assert outcome.status == "done", outcome.reason
     assert rrd_verify(record).returncode == 0
     entities = rrd_print(record)
-    for entity in ("/shot/raw/red", "/shot/channels/before", "/shot/disparity/region_model", "/shot/segmentation",
-                   "/shot/depth", "/shot/multi_plane/00", "/world/camera", "/world/points", "/timings/disparity"):
+    for entity in (
+        "/shot/raw/red",
+        "/shot/channels/before",
+        "/shot/disparity/region_model",
+        "/shot/segmentation",
+        "/shot/depth",
+        "/shot/multi_plane/00",
+        "/world/camera",
+        "/world/points",
+        "/timings/disparity",
+    ):
         assert entity in entities, entity
     assert "Pinhole" in entities["/world/camera"]
 
@@ -416,9 +473,17 @@ def test_real_pipeline_recording_verifies(tmp_path: Path, maker, name: str, size
     assert outcome.status == "done", outcome.reason
     assert rrd_verify(record).returncode == 0
     entities = rrd_print(record)
-    for entity in ("/shot/raw/red", "/shot/channels/before", "/shot/channels/after", "/shot/disparity/region_model",
-                   "/shot/disparity/confidence", "/shot/segmentation", "/shot/segmentation/sketch",
-                   "/shot/stages/disparity/cost", "/world/camera"):
+    for entity in (
+        "/shot/raw/red",
+        "/shot/channels/before",
+        "/shot/channels/after",
+        "/shot/disparity/region_model",
+        "/shot/disparity/confidence",
+        "/shot/segmentation",
+        "/shot/segmentation/sketch",
+        "/shot/stages/disparity/cost",
+        "/world/camera",
+    ):
         assert entity in entities, entity
     for stage in ("planes", "disparity", "sketch", "refine", "depth", "all_in_focus", "mpi"):
         assert "Scalars" in entities[f"/timings/{stage}"], stage

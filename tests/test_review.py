@@ -1,4 +1,5 @@
 """`mca review DIR`: the table of results and recordings in an output folder, from result.json files and .rrd names."""
+
 from __future__ import annotations
 
 import json
@@ -10,22 +11,36 @@ from mca.capture.cli import app
 from mca.capture.commands.review import format_table, review_rows
 
 
-def _result(folder: Path, regions: list[dict], capture_time: str | None = "2024-05-06T07:08:09",
-            status: str = "done") -> None:
+def _result(
+    folder: Path, regions: list[dict], capture_time: str | None = "2024-05-06T07:08:09", status: str = "done"
+) -> None:
     folder.mkdir(parents=True, exist_ok=True)
-    document = {"input": f"{folder.name}.CR2", "profile": "paper-70d", "regions": regions, "status": status,
-                "capture": {"capture_time": capture_time, "model": "Canon EOS 70D"}}
+    document = {
+        "input": f"{folder.name}.CR2",
+        "profile": "paper-70d",
+        "regions": regions,
+        "status": status,
+        "capture": {"capture_time": capture_time, "model": "Canon EOS 70D"},
+    }
     (folder / "result.json").write_text(json.dumps(document), encoding="utf-8")
 
 
 def _out_folder(tmp_path: Path) -> Path:
     out = tmp_path / "out"
-    _result(out / "paper-c", [{"id": 1, "distance_mm": 912.4, "disparity_px": -6.1},
-                              {"id": 2, "distance_mm": 1187.9, "disparity_px": 9.0},
-                              {"id": 3, "distance_mm": None, "disparity_px": 0.4}])
+    _result(
+        out / "paper-c",
+        [
+            {"id": 1, "distance_mm": 912.4, "disparity_px": -6.1},
+            {"id": 2, "distance_mm": 1187.9, "disparity_px": 9.0},
+            {"id": 3, "distance_mm": None, "disparity_px": 0.4},
+        ],
+    )
     (out / "paper-c" / "recording.rrd").write_bytes(b"rrd")
-    _result(out / "flat", [{"id": 1, "distance_mm": None, "disparity_px": -2.5},
-                           {"id": 2, "distance_mm": None, "disparity_px": 3.25}], capture_time=None)
+    _result(
+        out / "flat",
+        [{"id": 1, "distance_mm": None, "disparity_px": -2.5}, {"id": 2, "distance_mm": None, "disparity_px": 3.25}],
+        capture_time=None,
+    )
     (out / "broken").mkdir()
     (out / "broken" / "depth.tiff").write_bytes(b"half")
     (out / "bad").mkdir()
@@ -86,6 +101,8 @@ def test_view_without_display_says_how_to_look(tmp_path: Path, monkeypatch) -> N
     assert has_display({"WAYLAND_DISPLAY": "wayland-0"})
     command = viewer_command("rerun", [recording], web=True, bind="127.0.0.1", web_port=9090, grpc_port=9876)
     assert command[command.index("--bind") + 1] == "127.0.0.1" and "--serve-web" in command
-    assert viewer_command("rerun", [recording], web=False, bind="127.0.0.1", web_port=1, grpc_port=2) == \
-        ["rerun", str(recording)]
+    assert viewer_command("rerun", [recording], web=False, bind="127.0.0.1", web_port=1, grpc_port=2) == [
+        "rerun",
+        str(recording),
+    ]
     assert CliRunner().invoke(app, ["view", str(tmp_path / "none.rrd")]).exit_code == 2

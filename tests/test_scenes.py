@@ -1,4 +1,5 @@
 """The Fig. 4 scenes reproduce Table 1's depths and the occlusions the paper describes, and `mca simulate` writes them."""
+
 from __future__ import annotations
 
 import json
@@ -15,7 +16,7 @@ TINY = SimulationOptics.from_profile(PROFILE, 0.125)
 
 def _truth(name: str) -> dict:
     scene = paper_scene(name, TINY.focus_distance_mm)
-    depth, labels, masks = truth_rasters(scene, TINY)
+    _depth, labels, masks = truth_rasters(scene, TINY)
     return scene_truth(scene, TINY, labels, masks)
 
 
@@ -44,15 +45,15 @@ def test_occlusions_described_by_the_paper() -> None:
         by_id = {o["id"]: o["paper_label"] for o in truth["objects"]}
         return {o["paper_label"]: {by_id[i] for i in o["occludes"]} for o in truth["objects"]}
 
-    assert occludes("paper-a") == {k: set() for k in "ABCDE"}            # no overlap
+    assert occludes("paper-a") == {k: set() for k in "ABCDE"}  # no overlap
     b = occludes("paper-b")
-    assert b["A"] == {"C"} and b["B"] == {"C"}                            # blue and green over orange
+    assert b["A"] == {"C"} and b["B"] == {"C"}  # blue and green over orange
     e = occludes("paper-e")
-    assert {"A", "C", "D"} == {k for k, v in e.items() if "E" in v}      # red tomato, carrot, green tomato over spatula
+    assert {"A", "C", "D"} == {k for k, v in e.items() if "E" in v}  # red tomato, carrot, green tomato over spatula
     f = occludes("paper-f")
     assert f["C"] == {"B"} and f["B"] == {"A"}
     g = occludes("paper-g")
-    assert g["C"] == {"A-B"}                                              # the carrot hides the knife's middle
+    assert g["C"] == {"A-B"}  # the carrot hides the knife's middle
 
 
 def test_same_colour_objects_exist() -> None:
@@ -75,6 +76,6 @@ def test_mca_simulate_writes_the_files(tmp_path) -> None:
     assert truth["focus_distance_mm"] == pytest.approx(1000.5703, abs=1e-3)
     knife = next(o for o in truth["objects"] if o["slant"])
     assert knife["slant"]["axis"] == "x"
-    assert not list(tmp_path.glob(".*"))                                  # no temporary files left
+    assert not list(tmp_path.glob(".*"))  # no temporary files left
     bad = CliRunner().invoke(app, ["simulate", "--scene", "paper-z", "--out", str(tmp_path)])
     assert bad.exit_code == 2 and "unknown scene" in bad.output

@@ -1,4 +1,5 @@
 """The simulated EOS 70D through the real pyusb transport and through PTP/IP: capture, events, RAM buffer, properties."""
+
 from __future__ import annotations
 
 import io
@@ -102,12 +103,11 @@ def test_short_reads_and_coalesced_responses_still_give_identical_bytes(faults: 
 
 
 def test_ptpip_capture_and_download() -> None:
-    with PtpIpServer(port=0) as server:
-        with Camera.open(PtpIpTransport("127.0.0.1", server.port, timeout_s=2)) as cam:
-            assert cam.info.model == "Canon EOS 70D"
-            obj = cam.capture(timeout_s=5)
-            buf = io.BytesIO()
-            cam.download(obj.handle, obj.size_bytes, buf)
+    with PtpIpServer(port=0) as server, Camera.open(PtpIpTransport("127.0.0.1", server.port, timeout_s=2)) as cam:
+        assert cam.info.model == "Canon EOS 70D"
+        obj = cam.capture(timeout_s=5)
+        buf = io.BytesIO()
+        cam.download(obj.handle, obj.size_bytes, buf)
     assert buf.getvalue() == deterministic_frame(1)
 
 

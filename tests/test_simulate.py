@@ -1,4 +1,5 @@
 """The MCA simulator against the optics it claims to follow: channel displacements, occlusion, noise, truth, CR2."""
+
 from __future__ import annotations
 
 import json
@@ -9,13 +10,12 @@ from skimage.registration import phase_cross_correlation
 
 from mca.capture.profiles import load_profile
 from mca.processing.optics import MCAOptics
-from mca.processing.scenes import target_scene
+from mca.processing.scenes import rounded_rect, target_scene
 from mca.processing.simulate import Layer, Scene, SensorModel, SimulationOptics, Slant, render
-from mca.processing.scenes import rounded_rect
 from mca.processing.textures import Texture
 
 PROFILE = load_profile("paper-70d")
-SMALL = SimulationOptics.from_profile(PROFILE, 0.25)          # 1368 x 912 mosaic, pitch 4x the 70D's
+SMALL = SimulationOptics.from_profile(PROFILE, 0.25)  # 1368 x 912 mosaic, pitch 4x the 70D's
 NOISELESS = SensorModel(noise=False)
 
 
@@ -65,7 +65,7 @@ def test_disparity_scales_with_render_size() -> None:
 def test_perturbed_lens_moves_the_focus_plane() -> None:
     nominal_focus = SMALL.focus_distance_mm
     lens = SMALL.perturbed(focal_length_factor=1.01)
-    assert lens.focus_distance_mm > nominal_focus + 100.0       # a longer focal length focuses farther
+    assert lens.focus_distance_mm > nominal_focus + 100.0  # a longer focal length focuses farther
     rendering = render(target_scene(nominal_focus), lens, NOISELESS, cosited=True)
     dx, _ = _shift_px(rendering.planes_linear[..., 2], rendering.planes_linear[..., 0])
     assert 2 * dx == pytest.approx(lens.disparity_px(nominal_focus), abs=0.05)
@@ -84,8 +84,8 @@ def test_occlusion_composites_the_nearer_layer_over_the_farther() -> None:
     rendering = render(_two_squares(), SMALL, NOISELESS, cosited=True)
     h = SMALL.height_px // 2
     planes = rendering.planes_linear
-    overlap = planes[int(0.45 * h):int(0.55 * h), int(0.72 * h):int(0.78 * h)]   # both squares cover this
-    only_far = planes[int(0.45 * h):int(0.55 * h), int(0.92 * h):int(1.0 * h)]
+    overlap = planes[int(0.45 * h) : int(0.55 * h), int(0.72 * h) : int(0.78 * h)]  # both squares cover this
+    only_far = planes[int(0.45 * h) : int(0.55 * h), int(0.92 * h) : int(1.0 * h)]
     exposure = NOISELESS.exposure
     assert np.allclose(overlap.mean(axis=(0, 1)), np.array([0.8, 0.1, 0.1]) * exposure, atol=0.01)
     assert np.allclose(only_far.mean(axis=(0, 1)), np.array([0.1, 0.1, 0.8]) * exposure, atol=0.01)
@@ -100,14 +100,27 @@ def test_occlusion_composites_the_nearer_layer_over_the_farther() -> None:
 def test_photon_and_read_noise_statistics() -> None:
     sensor = SensorModel(iso=400, read_noise_e=8.0)
     scene = target_scene(SMALL.focus_distance_mm)
-    flat = Scene(scene.name, "uniform grey", (Layer(1, "grey", "grey", (0.5, 0.5, 0.5), SMALL.focus_distance_mm,
-                                                     Texture("gravel", 0.2, 0.0), scene.objects[0].shape),))
+    flat = Scene(
+        scene.name,
+        "uniform grey",
+        (
+            Layer(
+                1,
+                "grey",
+                "grey",
+                (0.5, 0.5, 0.5),
+                SMALL.focus_distance_mm,
+                Texture("gravel", 0.2, 0.0),
+                scene.objects[0].shape,
+            ),
+        ),
+    )
     rendering = render(flat, SMALL, sensor, seed=3)
     red = rendering.mosaic[0::2, 0::2].astype(np.float64)
     electrons = 0.5 * sensor.exposure * sensor.saturation_e
     gain = sensor.electrons_per_dn
     assert red.mean() == pytest.approx(sensor.black_level + electrons / gain, abs=0.5)
-    expected_var = (electrons + sensor.read_noise_e ** 2) / gain ** 2 + 1 / 12
+    expected_var = (electrons + sensor.read_noise_e**2) / gain**2 + 1 / 12
     assert red.var() == pytest.approx(expected_var, rel=0.03)
     # Without noise the mosaic is the rounded expectation.
     clean = render(flat, SMALL, SensorModel(iso=400, noise=False))
@@ -116,8 +129,16 @@ def test_photon_and_read_noise_statistics() -> None:
 
 def test_truth_is_consistent_with_the_optics() -> None:
     focus = SMALL.focus_distance_mm
-    knife = Layer(1, "knife", "steel", (0.5, 0.5, 0.5), focus + 35.0, texture=Texture(),
-                  shape=rounded_rect(0.75, 0.5, 1.0, 0.1, 0.0), slant=Slant(focus - 30.0, focus + 100.0, "x"))
+    knife = Layer(
+        1,
+        "knife",
+        "steel",
+        (0.5, 0.5, 0.5),
+        focus + 35.0,
+        texture=Texture(),
+        shape=rounded_rect(0.75, 0.5, 1.0, 0.1, 0.0),
+        slant=Slant(focus - 30.0, focus + 100.0, "x"),
+    )
     scene = Scene("slant", "a slanted bar", (knife,), None)
     rendering = render(scene, SMALL, NOISELESS)
     optics = MCAOptics.from_profile(PROFILE, SMALL.pixel_pitch_mm)
@@ -135,7 +156,7 @@ def test_truth_is_consistent_with_the_optics() -> None:
     inverse = 1.0 / row[inside].astype(np.float64)
     line = np.polyfit(inside, inverse, 1)
     assert np.abs(np.polyval(line, inside) - inverse).max() < 1e-3 * (inverse.max() - inverse.min())
-    distance = np.polyfit(inside, row[inside].astype(np.float64), 1)   # a linear distance ramp is not a plane
+    distance = np.polyfit(inside, row[inside].astype(np.float64), 1)  # a linear distance ramp is not a plane
     assert np.abs(np.polyval(distance, inside) - row[inside]).max() > 1.0
     low, high = entry["slant"]["extent_px"]
     assert abs(low - inside[0]) <= 1.0 and abs(high - inside[-1]) <= 1.0
@@ -146,10 +167,11 @@ def test_truth_is_consistent_with_the_optics() -> None:
     for end in (0.40, 1.10):
         x = int(end * h)
         window = (slice(int(0.47 * h), int(0.53 * h)), slice(x - 40, x + 40))
-        shift, _, _ = phase_cross_correlation(planes[..., 0][window], planes[..., 2][window],
-                                              upsample_factor=50, normalization=None)
+        shift, _, _ = phase_cross_correlation(
+            planes[..., 0][window], planes[..., 2][window], upsample_factor=50, normalization=None
+        )
         expected = float(optics.disparity_px_at_distance(knife.distance_at_mm((x + 0.5) / h)))
-        assert 2 * float(shift[1]) == pytest.approx(expected, abs=0.3)   # red relative to blue
+        assert 2 * float(shift[1]) == pytest.approx(expected, abs=0.3)  # red relative to blue
 
 
 def test_cr2_round_trip_returns_the_planes(tmp_path) -> None:
@@ -162,9 +184,13 @@ def test_cr2_round_trip_returns_the_planes(tmp_path) -> None:
     sensor = capture.sensor
     span = sensor.white_level - sensor.black_level
     m = capture.mosaic.astype(np.float32)
-    expected = np.dstack([(m[0::2, 0::2] - sensor.black_level) / span,
-                          ((m[0::2, 1::2] + m[1::2, 0::2]) / 2 - sensor.black_level) / span,
-                          (m[1::2, 1::2] - sensor.black_level) / span])
+    expected = np.dstack(
+        [
+            (m[0::2, 0::2] - sensor.black_level) / span,
+            ((m[0::2, 1::2] + m[1::2, 0::2]) / 2 - sensor.black_level) / span,
+            (m[1::2, 1::2] - sensor.black_level) / span,
+        ]
+    )
     assert frame.planes.shape == capture.planes_linear.shape
     np.testing.assert_allclose(frame.planes, np.clip(expected, 0, 1), atol=1e-6)
     # And the noise-free planes are what the noisy ones scatter around.
@@ -173,6 +199,7 @@ def test_cr2_round_trip_returns_the_planes(tmp_path) -> None:
     assert truth["scene"] == "paper-f" and truth["profile"] == "paper-70d"
     import cv2
     import tifffile
+
     labels = cv2.imread(str(paths["labels"]), cv2.IMREAD_UNCHANGED)
     assert labels.dtype == np.uint16 and np.array_equal(labels, capture.labels)
     depth = tifffile.imread(paths["depth"])

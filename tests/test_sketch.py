@@ -1,4 +1,5 @@
 """The 2.1D sketch on synthetic MCA images: regions, same-colour objects at different depths, occlusion order."""
+
 from __future__ import annotations
 
 import cv2
@@ -27,8 +28,9 @@ def render_layers(layers, shape):
     for rgb, alpha, d in layers:
         for c in range(3):
             mx, my = xs - np.float32(d * shifts[c, 0]), ys - np.float32(d * shifts[c, 1])
-            colour = cv2.remap(np.ascontiguousarray(rgb[..., c]), mx, my, cv2.INTER_LINEAR,
-                               borderMode=cv2.BORDER_REFLECT)
+            colour = cv2.remap(
+                np.ascontiguousarray(rgb[..., c]), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT
+            )
             cover = cv2.remap(alpha, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
             out[..., c] = out[..., c] * (1 - cover) + colour * cover
     return out
@@ -45,11 +47,18 @@ def two_boxes_scene():
     left[90:200, 60:190] = 1
     green = np.zeros(shape, np.float32)
     green[20:70, 250:340] = 1
-    layers = [wall, (texture(shape, 2, (0.8, 0.2, 0.15)), right, 2.5),
-              (texture(shape, 3, (0.8, 0.2, 0.15)), left, -2.0),
-              (texture(shape, 4, (0.2, 0.6, 0.25)), green, 0.0)]
-    return render_layers(layers, shape), {"left": (125, 145), "right": (250, 100), "green": (295, 45),
-                                          "wall": (30, 220)}
+    layers = [
+        wall,
+        (texture(shape, 2, (0.8, 0.2, 0.15)), right, 2.5),
+        (texture(shape, 3, (0.8, 0.2, 0.15)), left, -2.0),
+        (texture(shape, 4, (0.2, 0.6, 0.25)), green, 0.0),
+    ]
+    return render_layers(layers, shape), {
+        "left": (125, 145),
+        "right": (250, 100),
+        "green": (295, 45),
+        "wall": (30, 220),
+    }
 
 
 def test_weighted_median_by_label():
@@ -70,12 +79,12 @@ def test_sketch_separates_same_colour_objects_and_orders_them():
     disparity = estimate_disparity(planes, APERTURE, (-6.0, 9.0))
     sketch = build_sketch(planes, APERTURE, disparity, SketchParams())
     ids = {name: int(sketch.labels[y, x]) for name, (x, y) in points.items()}
-    assert len(set(ids.values())) == 4, ids                       # the two red boxes stay apart
-    assert len(sketch.regions) <= 5                             # at most one rim fragment left (see docs)
+    assert len(set(ids.values())) == 4, ids  # the two red boxes stay apart
+    assert len(sketch.regions) <= 5  # at most one rim fragment left (see docs)
     d = {name: sketch.region(i).disparity_px for name, i in ids.items()}
     assert abs(d["left"] + 2.0) < 0.3 and abs(d["right"] - 2.5) < 0.3 and abs(d["wall"] - 6.0) < 0.4
     assert sketch.focus_region == ids["green"]
     rank = {name: sketch.order[i] for name, i in ids.items()}
     assert rank["left"] < rank["green"] < rank["right"] < rank["wall"]
-    assert ids["right"] in sketch.occludes[ids["left"]]          # the near box occludes the far one
+    assert ids["right"] in sketch.occludes[ids["left"]]  # the near box occludes the far one
     assert ids["left"] not in sketch.occludes[ids["right"]]

@@ -1,4 +1,5 @@
 """`mca capture` and `mca camera` against the simulated camera: files, catalog rows and property commands."""
+
 from __future__ import annotations
 
 import sqlite3
@@ -15,8 +16,11 @@ def test_capture_three_shots_leaves_three_cr2_files_and_a_catalog(tmp_path: Path
     assert result.exit_code == 0, result.output
     files = sorted(p.name for p in out.glob("*.CR2"))
     assert files == ["IMG_0001.CR2", "IMG_0002.CR2", "IMG_0003.CR2"]
-    rows = sqlite3.connect(out / "catalog.sqlite").execute(
-        "SELECT file_name, status, size_bytes, sha256 FROM shots ORDER BY id").fetchall()
+    rows = (
+        sqlite3.connect(out / "catalog.sqlite")
+        .execute("SELECT file_name, status, size_bytes, sha256 FROM shots ORDER BY id")
+        .fetchall()
+    )
     assert [(r[0], r[1]) for r in rows] == [(f, "downloaded") for f in files]
     assert all(r[2] == (out / r[0]).stat().st_size and len(r[3]) == 64 for r in rows)
 

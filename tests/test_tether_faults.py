@@ -1,7 +1,9 @@
 """The tethering session under faults: every captured shot ends on disk byte-identical with a correct catalog."""
+
 from __future__ import annotations
 
 import hashlib
+import itertools
 from pathlib import Path
 
 import pytest
@@ -12,7 +14,9 @@ from mca.devices.sim_eos70d.faults import FaultPlan
 from mca.devices.sim_eos70d.responder import default_frame_source
 
 
-def _run(tmp_path: Path, faults: FaultPlan, count: int = 3, frame_source=default_frame_source) -> tuple[TetherSession, object]:
+def _run(
+    tmp_path: Path, faults: FaultPlan, count: int = 3, frame_source=default_frame_source
+) -> tuple[TetherSession, object]:
     rig = make_sim_rig(frame_source, faults=faults)
     session = TetherSession(camera_factory("sim", rig=rig, timeout_s=0.3), tmp_path)
     session.connect()
@@ -36,13 +40,17 @@ def _check(session: TetherSession, rig, tmp_path: Path, count: int = 3) -> None:
     session.close()
 
 
-@pytest.mark.parametrize("faults", [
-    FaultPlan(disconnect_after_in_bytes=100_000),
-    FaultPlan(stall_op=Op.EOS_GET_PARTIAL_OBJECT),
-    FaultPlan(busy_count=2),
-    FaultPlan(short_read_bytes=1000),
-    FaultPlan(corrupt_op=Op.EOS_GET_PARTIAL_OBJECT),
-], ids=["disconnect-mid-download", "stall", "device-busy", "short-reads", "corrupt-container"])
+@pytest.mark.parametrize(
+    "faults",
+    [
+        FaultPlan(disconnect_after_in_bytes=100_000),
+        FaultPlan(stall_op=Op.EOS_GET_PARTIAL_OBJECT),
+        FaultPlan(busy_count=2),
+        FaultPlan(short_read_bytes=1000),
+        FaultPlan(corrupt_op=Op.EOS_GET_PARTIAL_OBJECT),
+    ],
+    ids=["disconnect-mid-download", "stall", "device-busy", "short-reads", "corrupt-container"],
+)
 def test_faults_end_with_every_shot_on_disk(tmp_path: Path, faults: FaultPlan) -> None:
     session, rig = _run(tmp_path, faults)
     _check(session, rig, tmp_path)
@@ -68,7 +76,7 @@ def test_hostile_file_names_stay_inside_the_output_folder(tmp_path: Path) -> Non
     names = iter(["../../etc/passwd", "..", "IMG\x00\x1b[31m.CR2", "a/b\\c.CR2", "IMG_0001.CR2", "img_0001.cr2"])
     source = lambda i: (next(names), b"x" * (100 + i))  # noqa: E731
     out = tmp_path / "out"
-    session, rig = _run(out, FaultPlan(), count=6, frame_source=source)
+    session, _rig = _run(out, FaultPlan(), count=6, frame_source=source)
     files = sorted(p.name for p in out.iterdir() if p.name != "catalog.sqlite" and not p.name.startswith("catalog"))
     assert all("/" not in f and ".." not in f and f.isprintable() for f in files)
     assert len(files) == 6 and not (tmp_path / "etc").exists()
@@ -101,9 +109,9 @@ def test_catalog_times_never_run_backwards_across_a_second_boundary() -> None:
 
     from mca.capture.catalog import _now
 
-    boundary = int(time.time()) + 1                      # stamp continuously through the next whole second
+    boundary = int(time.time()) + 1  # stamp continuously through the next whole second
     stamps = []
     while time.time() < boundary + 0.05:
         stamps.append(_now())
-    assert any(stamp[17:19] != stamps[0][17:19] for stamp in stamps)      # the seconds field did change
-    assert all(later >= earlier for earlier, later in zip(stamps, stamps[1:]))
+    assert any(stamp[17:19] != stamps[0][17:19] for stamp in stamps)  # the seconds field did change
+    assert all(later >= earlier for earlier, later in itertools.pairwise(stamps))

@@ -1,8 +1,8 @@
 """`mca calibrate`: sweep a textured target along the bench rail, fit d_a and d_ls, write a calibrated profile."""
+
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
 
 import typer
 
@@ -10,25 +10,33 @@ import typer
 def calibrate(
     camera: str = typer.Option("auto", "--camera", "-c", help="auto, sim, usb:BUS:ADDR or ptpip:HOST:PORT"),
     rail: str = typer.Option(..., "--rail", envvar="MCA_RAIL", help="serial port of the GRBL rail, or sim"),
-    from_mm: float = typer.Option(-100.0, "--from", help="first sweep position, mm (offset from the focus plane "
-                                                         "with the default --target-distance-at-zero)"),
+    from_mm: float = typer.Option(
+        -100.0,
+        "--from",
+        help="first sweep position, mm (offset from the focus plane with the default --target-distance-at-zero)",
+    ),
     to_mm: float = typer.Option(150.0, "--to", help="last sweep position, mm"),
     step_mm: float = typer.Option(10.0, "--step", help="sweep step, mm"),
     profile_name: str = typer.Option("paper-70d", "--profile", help="nominal profile: built-in name or TOML"),
     out: Path = typer.Option(..., "--out", "-o", help="calibrated profile TOML to write (plot beside it as .png)"),
-    shots_dir: Optional[Path] = typer.Option(None, "--dir", help="shots and catalog.sqlite; default OUT stem + "
-                                                                 "'-sweep'. Rerun with the same to resume"),
-    target_distance_at_zero: Optional[float] = typer.Option(
-        None, "--target-distance-at-zero", help="target distance from the lens (mm) with the rail at 0 mm; "
-                                                "default: the profile's focus distance + --from"),
+    shots_dir: Path | None = typer.Option(
+        None, "--dir", help="shots and catalog.sqlite; default OUT stem + '-sweep'. Rerun with the same to resume"
+    ),
+    target_distance_at_zero: float | None = typer.Option(
+        None,
+        "--target-distance-at-zero",
+        help="target distance from the lens (mm) with the rail at 0 mm; default: the profile's focus distance + --from",
+    ),
     rail_start: float = typer.Option(0.0, "--rail-start", help="rail position (mm from home) of --from"),
-    offset_px: float = typer.Option(0.0, "--disparity-offset-px",
-                                    help="known red-blue disparity offset (px), held fixed in the fit"),
-    feed: Optional[float] = typer.Option(None, "--feed", help="rail feed, mm/min"),
-    sim_deviation: str = typer.Option("1.03,1.02,0.3", "--sim-deviation",
-                                      help="simulated lens: BASELINE_FACTOR,FOCUS_FACTOR,OFFSET_PX"),
+    offset_px: float = typer.Option(
+        0.0, "--disparity-offset-px", help="known red-blue disparity offset (px), held fixed in the fit"
+    ),
+    feed: float | None = typer.Option(None, "--feed", help="rail feed, mm/min"),
+    sim_deviation: str = typer.Option(
+        "1.03,1.02,0.3", "--sim-deviation", help="simulated lens: BASELINE_FACTOR,FOCUS_FACTOR,OFFSET_PX"
+    ),
     sim_scale: float = typer.Option(0.25, "--sim-scale", help="simulated render size (fraction of the profile's)"),
-    record: Optional[Path] = typer.Option(None, "--record", help="also log the fit into a rerun FILE.rrd"),
+    record: Path | None = typer.Option(None, "--record", help="also log the fit into a rerun FILE.rrd"),
 ) -> None:
     """Calibrate an MCA lens on the bench: the fitted profile's depths match the rail's known distances."""
     import cv2
@@ -49,8 +57,7 @@ def calibrate(
         nominal = cal.nominal_lens(profile, offset_px)
     except (ProfileError, ValueError) as exc:
         fail(str(exc), 2)
-    at_zero = target_distance_at_zero if target_distance_at_zero is not None else \
-        nominal.focus_distance_mm + from_mm
+    at_zero = target_distance_at_zero if target_distance_at_zero is not None else nominal.focus_distance_mm + from_mm
     try:
         plan = cal.SweepPlan(from_mm, to_mm, step_mm, at_zero, rail_start)
         deviation = cal.SimDeviation.parse(sim_deviation)
@@ -67,8 +74,10 @@ def calibrate(
             factory = camera_factory(camera)
         except ValueError as exc:
             fail(str(exc), 2)
-    typer.echo(f"sweep {from_mm:+.1f} .. {to_mm:+.1f} mm step {step_mm} mm: {len(plan.positions_mm)} positions, "
-               f"target at {at_zero:.1f} mm from the lens with the rail at 0; shots in {directory}")
+    typer.echo(
+        f"sweep {from_mm:+.1f} .. {to_mm:+.1f} mm step {step_mm} mm: {len(plan.positions_mm)} positions, "
+        f"target at {at_zero:.1f} mm from the lens with the rail at 0; shots in {directory}"
+    )
     try:
         options = {"sim_speedup": 200.0, "poll_interval_s": 0.01} if rail == "sim" else {}
         with open_rail(rail, **options) as bench_rail:
@@ -76,8 +85,15 @@ def calibrate(
                 bench.rail_runner = bench_rail.simulator  # type: ignore[attr-defined]
             elif bench is not None:
                 fail("--camera sim photographs the simulated rail only: use --rail sim with it", 2)
-            outcome = cal.run_sweep(plan, profile, directory, camera_factory=factory, rail=bench_rail,
-                                    log=lambda m: typer.echo(f"  {m}", err=True), feed_mm_per_min=feed)
+            outcome = cal.run_sweep(
+                plan,
+                profile,
+                directory,
+                camera_factory=factory,
+                rail=bench_rail,
+                log=lambda m: typer.echo(f"  {m}", err=True),
+                feed_mm_per_min=feed,
+            )
     except RailError as exc:
         fail(f"{exc} Nothing was shot at this run's remaining positions; rerun to resume.")
     except cal.CalibrationError as exc:
@@ -99,16 +115,40 @@ def calibrate(
     cv2.imwrite(str(plot_path), plot)
 
     f, s = fit.fitted, fit.sigma
-    typer.echo(f"fit over {len(points)} positions ({len(outcome.shot_positions_mm)} shot now): residual rms "
-               f"{fit.residual_rms_px:.4f} px, max depth error {fit.max_depth_error_mm:.3f} mm")
-    rows = [("d_a (red-blue) mm", fit.nominal.filter_centre_distance_mm, f.filter_centre_distance_mm,
-             s.get("filter_centre_distance_mm"), bench.truth.filter_centre_distance_mm if bench else None),
-            ("d_ls mm", fit.nominal.sensor_distance_mm, f.sensor_distance_mm, s.get("sensor_distance_mm"),
-             bench.truth.sensor_distance_mm if bench else None),
-            ("focus distance mm", fit.nominal.focus_distance_mm, f.focus_distance_mm, s.get("focus_distance_mm"),
-             bench.truth.focus_distance_mm if bench else None),
-            ("disparity offset px (fixed)", fit.nominal.disparity_offset_px, f.disparity_offset_px, None,
-             bench.truth.disparity_offset_px if bench else None)]
+    typer.echo(
+        f"fit over {len(points)} positions ({len(outcome.shot_positions_mm)} shot now): residual rms "
+        f"{fit.residual_rms_px:.4f} px, max depth error {fit.max_depth_error_mm:.3f} mm"
+    )
+    rows = [
+        (
+            "d_a (red-blue) mm",
+            fit.nominal.filter_centre_distance_mm,
+            f.filter_centre_distance_mm,
+            s.get("filter_centre_distance_mm"),
+            bench.truth.filter_centre_distance_mm if bench else None,
+        ),
+        (
+            "d_ls mm",
+            fit.nominal.sensor_distance_mm,
+            f.sensor_distance_mm,
+            s.get("sensor_distance_mm"),
+            bench.truth.sensor_distance_mm if bench else None,
+        ),
+        (
+            "focus distance mm",
+            fit.nominal.focus_distance_mm,
+            f.focus_distance_mm,
+            s.get("focus_distance_mm"),
+            bench.truth.focus_distance_mm if bench else None,
+        ),
+        (
+            "disparity offset px (fixed)",
+            fit.nominal.disparity_offset_px,
+            f.disparity_offset_px,
+            None,
+            bench.truth.disparity_offset_px if bench else None,
+        ),
+    ]
     header = f"{'':28s}{'nominal':>12s}{'fitted':>12s}{'sigma':>10s}"
     typer.echo(header + (f"{'sim truth':>12s}{'error':>9s}" if bench else ""))
     for label, nom, value, sigma, truth in rows:
@@ -122,8 +162,9 @@ def calibrate(
 
         grid = np.linspace(min(p.distance_mm for p in points), max(p.distance_mm for p in points), 101)
         model_error = np.abs(np.asarray(f.distance_mm(bench.truth.disparity_px(grid))) - grid).max()
-        typer.echo(f"depth error of the fitted profile against the simulated lens over the sweep: "
-                   f"{model_error:.3f} mm max")
+        typer.echo(
+            f"depth error of the fitted profile against the simulated lens over the sweep: {model_error:.3f} mm max"
+        )
     typer.echo(f"wrote {out} and {plot_path}")
 
     if record is not None:
@@ -133,11 +174,17 @@ def calibrate(
             typer.echo("not recorded: capture.recording is not available", err=True)
             return
         with RerunRecorder(record) as recorder:
-            recorder.record("calibration", plot=cv2.cvtColor(plot, cv2.COLOR_BGR2RGB),
-                            filter_centre_distance_mm=f.filter_centre_distance_mm,
-                            sensor_distance_mm=f.sensor_distance_mm, focus_distance_mm=f.focus_distance_mm,
-                            residual_rms_px=fit.residual_rms_px, max_depth_error_mm=fit.max_depth_error_mm,
-                            residuals_px=fit.residuals_px, profile=text)
+            recorder.record(
+                "calibration",
+                plot=cv2.cvtColor(plot, cv2.COLOR_BGR2RGB),
+                filter_centre_distance_mm=f.filter_centre_distance_mm,
+                sensor_distance_mm=f.sensor_distance_mm,
+                focus_distance_mm=f.focus_distance_mm,
+                residual_rms_px=fit.residual_rms_px,
+                max_depth_error_mm=fit.max_depth_error_mm,
+                residuals_px=fit.residuals_px,
+                profile=text,
+            )
         typer.echo(f"recorded in {record}")
 
 

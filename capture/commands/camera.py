@@ -1,7 +1,6 @@
 """`mca camera ...`: list cameras, show one's info, get/set its properties, and serve the simulated EOS 70D."""
-from __future__ import annotations
 
-from typing import Optional
+from __future__ import annotations
 
 import typer
 
@@ -35,14 +34,19 @@ def list_cameras(sim: bool = typer.Option(False, "--sim", help="also list the si
     if sim:
         from mca.capture.tether import make_sim_rig
 
-        found += [dict(port="sim", manufacturer=c.manufacturer, product=c.product, serial_number=c.serial_number)
-                  for c in find_cameras(make_sim_rig().backend)]  # type: ignore[misc]
+        found += [
+            dict(port="sim", manufacturer=c.manufacturer, product=c.product, serial_number=c.serial_number)
+            for c in find_cameras(make_sim_rig().backend)
+        ]  # type: ignore[misc]
     if not found:
         typer.echo("no PTP camera found (switch it on and connect it; `--camera sim` uses the simulated one)")
         return
     for c in found:
-        d = c if isinstance(c, dict) else dict(port=c.port, manufacturer=c.manufacturer, product=c.product,
-                                               serial_number=c.serial_number)
+        d = (
+            c
+            if isinstance(c, dict)
+            else dict(port=c.port, manufacturer=c.manufacturer, product=c.product, serial_number=c.serial_number)
+        )
         typer.echo(f"{d['port']}\t{d['manufacturer']} {d['product']}\tserial {d['serial_number']}")
 
 
@@ -58,17 +62,19 @@ def info(camera: str = CAMERA_OPTION) -> None:
         typer.echo(f"serial:       {i.serial_number}")
         typer.echo(f"capture:      {'Canon EOS remote release' if cam.is_eos else 'PTP InitiateCapture'}")
         for sid, s in cam.storages().items():
-            typer.echo(f"storage 0x{sid:08X}: {s.description} {s.volume_label} "
-                       f"{s.free_space_bytes / 1e9:.1f} of {s.max_capacity_bytes / 1e9:.1f} GB free")
+            typer.echo(
+                f"storage 0x{sid:08X}: {s.description} {s.volume_label} "
+                f"{s.free_space_bytes / 1e9:.1f} of {s.max_capacity_bytes / 1e9:.1f} GB free"
+            )
     finally:
         cam.close()
 
 
 @camera_app.command("config")
 def config(
-    action: Optional[str] = typer.Argument(None, help="get or set; omit to list every property"),
-    name: Optional[str] = typer.Argument(None, help="iso, shutterspeed, aperture, capturetarget, imageformat"),
-    value: Optional[str] = typer.Argument(None, help="the new value (for set)"),
+    action: str | None = typer.Argument(None, help="get or set; omit to list every property"),
+    name: str | None = typer.Argument(None, help="iso, shutterspeed, aperture, capturetarget, imageformat"),
+    value: str | None = typer.Argument(None, help="the new value (for set)"),
     camera: str = CAMERA_OPTION,
 ) -> None:
     """Show or change camera properties by human name."""
@@ -119,8 +125,11 @@ def serve_sim(
     except (OSError, ValueError) as exc:
         typer.echo(f"error: cannot listen on {ptpip}: {exc}", err=True)
         raise typer.Exit(2) from exc
-    typer.echo(f"simulated Canon EOS 70D on ptpip:{server.address} (gphoto2 --port ptpip:{server.host}"
-               f"{'' if server.port == 15740 else f':{server.port}:{server.port}'}); Ctrl-C to stop", err=True)
+    typer.echo(
+        f"simulated Canon EOS 70D on ptpip:{server.address} (gphoto2 --port ptpip:{server.host}"
+        f"{'' if server.port == 15740 else f':{server.port}:{server.port}'}); Ctrl-C to stop",
+        err=True,
+    )
     try:
         server.serve_forever()
     except KeyboardInterrupt:

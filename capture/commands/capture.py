@@ -1,23 +1,28 @@
 """`mca capture`: take N shots (or download shots taken on the camera) into a folder with a catalog."""
+
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
 
 import typer
 
 
 def capture(
-    camera: Optional[str] = typer.Option(None, "--camera", "-c",
-                                         help="auto, sim, usb:BUS:ADDR or ptpip:HOST:PORT (default: config, auto)"),
+    camera: str | None = typer.Option(
+        None, "--camera", "-c", help="auto, sim, usb:BUS:ADDR or ptpip:HOST:PORT (default: config, auto)"
+    ),
     count: int = typer.Option(1, "--count", "-n", min=1, help="number of shots"),
     interval: float = typer.Option(0.0, "--interval", help="seconds between shot starts"),
     out: Path = typer.Option(..., "--out", "-o", help="folder for the files and catalog.sqlite"),
     process: bool = typer.Option(False, "--process", help="run the depth pipeline on each shot"),
-    profile: Optional[str] = typer.Option(None, "--profile", help="processing profile (default: config, paper-70d)"),
-    record: Optional[Path] = typer.Option(None, "--record", help="rerun recording FILE.rrd for --process"),
-    tethered: bool = typer.Option(False, "--tethered", help="download shots taken with the camera's shutter button until Ctrl-C"),
-    delete_after_verify: bool = typer.Option(False, "--delete-after-verify", help="delete each file from the card once verified on disk"),
+    profile: str | None = typer.Option(None, "--profile", help="processing profile (default: config, paper-70d)"),
+    record: Path | None = typer.Option(None, "--record", help="rerun recording FILE.rrd for --process"),
+    tethered: bool = typer.Option(
+        False, "--tethered", help="download shots taken with the camera's shutter button until Ctrl-C"
+    ),
+    delete_after_verify: bool = typer.Option(
+        False, "--delete-after-verify", help="delete each file from the card once verified on disk"
+    ),
     capture_target: str = typer.Option("card", "--target", help="card or ram"),
 ) -> None:
     """Capture with a tethered camera; every shot is verified, fsynced and catalogued in OUT/catalog.sqlite."""
@@ -44,9 +49,17 @@ def capture(
         if done == total:
             typer.echo(f"  downloaded {total / 1e6:.1f} MB", err=True)
 
-    session = TetherSession(factory, out, delete_after_verify=delete_after_verify, process=process, profile=profile,
-                            record=record, log=lambda m: typer.echo(f"  {m}", err=True), progress=progress,
-                            capture_target=capture_target)
+    session = TetherSession(
+        factory,
+        out,
+        delete_after_verify=delete_after_verify,
+        process=process,
+        profile=profile,
+        record=record,
+        log=lambda m: typer.echo(f"  {m}", err=True),
+        progress=progress,
+        capture_target=capture_target,
+    )
     stop = threading.Event()
     try:
         session.connect()

@@ -1,4 +1,5 @@
 """`mca config show|paths`: the effective appliance configuration and the files it was read from."""
+
 from __future__ import annotations
 
 import json
@@ -13,8 +14,9 @@ def _toml_value(value: object) -> str:
 
 
 def register(app: typer.Typer) -> None:
-    config_app = typer.Typer(help="The appliance config file: show the effective values and where they came from.",
-                             no_args_is_help=True)
+    config_app = typer.Typer(
+        help="The appliance config file: show the effective values and where they came from.", no_args_is_help=True
+    )
 
     @config_app.command("show")
     def show(as_json: bool = typer.Option(False, "--json", help="Print one JSON object: values and sources.")) -> None:
@@ -27,11 +29,18 @@ def register(app: typer.Typer) -> None:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(2)
         if as_json:
-            typer.echo(json.dumps({
-                "values": {key: (getattr(config, key) if key == "workers" else str(getattr(config, key)))
-                           for key in KEYS},
-                "sources": {key: config.source_of(key) for key in KEYS},
-            }, indent=2))
+            typer.echo(
+                json.dumps(
+                    {
+                        "values": {
+                            key: (getattr(config, key) if key == "workers" else str(getattr(config, key)))
+                            for key in KEYS
+                        },
+                        "sources": {key: config.source_of(key) for key in KEYS},
+                    },
+                    indent=2,
+                )
+            )
             return
         rendered = [(f"{key} = {_toml_value(getattr(config, key))}", config.source_of(key)) for key in KEYS]
         width = max(len(text) for text, _ in rendered)
@@ -41,9 +50,9 @@ def register(app: typer.Typer) -> None:
     @config_app.command("paths")
     def paths() -> None:
         """List the files searched, lowest precedence first, and whether each exists."""
-        from mca.capture.config import ENV_VAR, config_paths
-
         import os
+
+        from mca.capture.config import ENV_VAR, config_paths
 
         if os.environ.get(ENV_VAR):
             typer.echo(f"${ENV_VAR} is set: only this file is read")

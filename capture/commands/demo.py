@@ -1,4 +1,5 @@
 """`mca demo`: the main job end to end — tethered capture, accurate-depth processing and a rerun recording."""
+
 from __future__ import annotations
 
 import json
@@ -16,12 +17,17 @@ def _summarise(result_dir: str) -> list[str]:
     for region in sorted(result.get("regions", []), key=lambda r: r.get("order", 0)):
         distance = region.get("distance_mm")
         depth = region.get("inter_object_depth_mm")
-        where = (f"{distance:8.1f} mm from the lens ({depth:+7.1f} mm from focus)"
-                 if distance is not None and depth is not None else "distance unknown")
+        where = (
+            f"{distance:8.1f} mm from the lens ({depth:+7.1f} mm from focus)"
+            if distance is not None and depth is not None
+            else "distance unknown"
+        )
         slant = " slanted" if region.get("slant") else ""
         focus = " in focus" if region.get("id") == result.get("focus_region") else ""
-        lines.append(f"    region {region['id']:2d} order {region['order']}: disparity {region['disparity_px']:+6.2f} px, "
-                     f"{where}{focus}{slant}")
+        lines.append(
+            f"    region {region['id']:2d} order {region['order']}: disparity {region['disparity_px']:+6.2f} px, "
+            f"{where}{focus}{slant}"
+        )
     total = sum(result.get("timings_s", {}).values())
     lines.append(f"    processed in {total:.2f} s")
     return lines
@@ -32,9 +38,13 @@ def register(app: typer.Typer) -> None:
     def demo(
         out: Path = typer.Option(Path("demo-out"), "--out", "-o", help="Folder for shots, results and the recording."),
         count: int = typer.Option(3, "--count", "-n", min=1, max=50, help="Number of shots."),
-        camera: str = typer.Option("sim", "--camera", "-c",
-                                   help="sim (simulated EOS 70D), auto (a USB camera if one is found, else sim), "
-                                        "usb:BUS:ADDR or ptpip:HOST:PORT."),
+        camera: str = typer.Option(
+            "sim",
+            "--camera",
+            "-c",
+            help="sim (simulated EOS 70D), auto (a USB camera if one is found, else sim), "
+            "usb:BUS:ADDR or ptpip:HOST:PORT.",
+        ),
         size: str = typer.Option("full", "--size", help="Simulated frame size: full (5472x3648), small, or a scale."),
         profile: str = typer.Option("paper-70d", "--profile", help="Profile used for processing."),
     ) -> None:
@@ -52,7 +62,7 @@ def register(app: typer.Typer) -> None:
                 from mca.devices.ptp.transport_usb import find_cameras
 
                 spec = "auto" if find_cameras() else "sim"
-            except Exception:  # noqa: BLE001 - no libusb, no permission: fall back to the simulated body
+            except Exception:
                 spec = "sim"
         if spec == "sim":
             try:
@@ -67,8 +77,14 @@ def register(app: typer.Typer) -> None:
 
         out.mkdir(parents=True, exist_ok=True)
         recording = out / "demo.rrd"
-        session = TetherSession(factory, out / "shots", process=True, profile=profile, record=recording,
-                                log=lambda m: typer.echo(f"  {m}", err=True))
+        session = TetherSession(
+            factory,
+            out / "shots",
+            process=True,
+            profile=profile,
+            record=recording,
+            log=lambda m: typer.echo(f"  {m}", err=True),
+        )
         try:
             session.connect()
             results = session.capture(count, 0.0)
@@ -89,7 +105,9 @@ def register(app: typer.Typer) -> None:
                 typer.echo(f"    {shot.message}")
         typer.echo(f"\nshots and results: {out / 'shots'} (catalog.sqlite lists every shot)")
         if recording.exists():
-            typer.echo(f"recording: {recording}  — open it with `mca view {recording}` "
-                       "(or copy it to a machine with a display and run `rerun demo.rrd`)")
+            typer.echo(
+                f"recording: {recording}  — open it with `mca view {recording}` "
+                "(or copy it to a machine with a display and run `rerun demo.rrd`)"
+            )
         if failed:
             raise typer.Exit(1)

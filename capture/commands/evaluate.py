@@ -1,4 +1,5 @@
 """`mca evaluate`: the simulated paper scenes through the pipeline and two peers, printed as the paper's Table 2."""
+
 from __future__ import annotations
 
 import typer
@@ -9,8 +10,12 @@ def register(app: typer.Typer) -> None:
     def evaluate(
         scene: str = typer.Option("all", "--scene", "-s", help="paper-a .. paper-g, or 'all'."),
         profile: str = typer.Option("paper-70d", "--profile", "-p", help="Built-in profile name or TOML file."),
-        scale: float = typer.Option(1.0, "--scale", help="Render size as a fraction of the profile's sensor "
-                                                         "(1.0 = the full 20 MP; smaller is faster, less precise)."),
+        scale: float = typer.Option(
+            1.0,
+            "--scale",
+            help="Render size as a fraction of the profile's sensor "
+            "(1.0 = the full 20 MP; smaller is faster, less precise).",
+        ),
         seed: int = typer.Option(0, "--seed", help="Seed of the simulated sensor noise."),
         peers: bool = typer.Option(True, "--peers/--no-peers", help="Also run StereoSGBM and integer WTA."),
     ) -> None:
@@ -23,8 +28,12 @@ def register(app: typer.Typer) -> None:
         from mca.processing.camera import ProfileError
         from mca.processing.evaluate import bayer_planes, evaluate_scene, format_table
         from mca.processing.peers import colour_line_wta, sgbm_disparity
-        from mca.processing.pipeline import RGGB_HALF_RES_OFFSETS_PX, align_channel_samples, \
-            default_disparity_range_px, run_pipeline
+        from mca.processing.pipeline import (
+            RGGB_HALF_RES_OFFSETS_PX,
+            align_channel_samples,
+            default_disparity_range_px,
+            run_pipeline,
+        )
         from mca.processing.scenes import paper_scene, scene_names
         from mca.processing.simulate import SensorModel, SimulationOptics, render
 
@@ -37,7 +46,9 @@ def register(app: typer.Typer) -> None:
         names = scene_names() if scene == "all" else [scene]
         unknown = [n for n in names if n not in scene_names()]
         if unknown:
-            typer.echo(f"error: unknown scene {unknown[0]!r}; choose one of {', '.join(scene_names())} or all", err=True)
+            typer.echo(
+                f"error: unknown scene {unknown[0]!r}; choose one of {', '.join(scene_names())} or all", err=True
+            )
             raise typer.Exit(2)
         sensor = SensorModel()
         evaluations = []
@@ -46,8 +57,9 @@ def register(app: typer.Typer) -> None:
             rendering = render(paper_scene(name, optics.focus_distance_mm), optics, sensor, seed=seed)
             planes = bayer_planes(rendering.mosaic, sensor.black_level, sensor.white_level)
             start = time.perf_counter()
-            result = run_pipeline(planes, optics.aperture, optics.mca, pixel_scale=2.0,
-                                  channel_offsets_px=RGGB_HALF_RES_OFFSETS_PX)
+            result = run_pipeline(
+                planes, optics.aperture, optics.mca, pixel_scale=2.0, channel_offsets_px=RGGB_HALF_RES_OFFSETS_PX
+            )
             seconds = time.perf_counter() - start
             peer_maps = {}
             if peers:
@@ -56,9 +68,12 @@ def register(app: typer.Typer) -> None:
                 range_proc = (low / 2.0, high / 2.0)
                 peer_maps["sgbm"] = sgbm_disparity(aligned, optics.aperture, range_proc) * 2.0
                 peer_maps["wta"] = colour_line_wta(aligned, optics.aperture, range_proc) * 2.0
-            evaluations.append(evaluate_scene(rendering.truth, rendering.labels, result, optics.mca, peer_maps,
-                                              seconds))
+            evaluations.append(
+                evaluate_scene(rendering.truth, rendering.labels, result, optics.mca, peer_maps, seconds)
+            )
             typer.echo(f"{name}: {len(result.regions)} regions in {seconds:.2f} s", err=True)
-        typer.echo(f"profile {camera.name}, render {optics.width_px}x{optics.height_px} (scale {scale}), "
-                   f"processing {optics.width_px // 2}x{optics.height_px // 2}; ΔD in mm, + = farther than focus")
+        typer.echo(
+            f"profile {camera.name}, render {optics.width_px}x{optics.height_px} (scale {scale}), "
+            f"processing {optics.width_px // 2}x{optics.height_px // 2}; ΔD in mm, + = farther than focus"
+        )
         typer.echo(format_table(evaluations, methods))

@@ -1,8 +1,8 @@
 """`mca optics`: convert between disparity, inter-image depth, inter-object depth and distance for a profile."""
+
 from __future__ import annotations
 
 import json
-from typing import Optional
 
 import typer
 
@@ -11,11 +11,13 @@ def register(app: typer.Typer) -> None:
     @app.command("optics")
     def optics(
         profile: str = typer.Option("paper-70d", "--profile", "-p", help="Built-in profile name or TOML file."),
-        disparity_px: Optional[float] = typer.Option(None, "--disparity-px",
-                                                     help="Disparity between the widest filter pair, pixels."),
-        inter_image_depth_mm: Optional[float] = typer.Option(None, "--inter-image-depth-mm",
-                                                             help="Image-side depth Δd from the sensor, mm."),
-        distance_mm: Optional[float] = typer.Option(None, "--distance-mm", help="Object distance from the lens, mm."),
+        disparity_px: float | None = typer.Option(
+            None, "--disparity-px", help="Disparity between the widest filter pair, pixels."
+        ),
+        inter_image_depth_mm: float | None = typer.Option(
+            None, "--inter-image-depth-mm", help="Image-side depth Δd from the sensor, mm."
+        ),
+        distance_mm: float | None = typer.Option(None, "--distance-mm", help="Object distance from the lens, mm."),
         as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
     ) -> None:
         """From one of disparity, inter-image depth or distance, print all four (eqs. 2, 11, 13/14 and the thin lens).
@@ -39,15 +41,19 @@ def register(app: typer.Typer) -> None:
             estimate = optics_model.from_disparity(disparity_px)
         elif inter_image_depth_mm is not None:
             if inter_image_depth_mm >= optics_model.sensor_distance_mm:
-                typer.echo("error: --inter-image-depth-mm must be smaller than the sensor distance "
-                           f"{optics_model.sensor_distance_mm:.3f} mm", err=True)
+                typer.echo(
+                    "error: --inter-image-depth-mm must be smaller than the sensor distance "
+                    f"{optics_model.sensor_distance_mm:.3f} mm",
+                    err=True,
+                )
                 raise typer.Exit(2)
             estimate = optics_model.from_inter_image_depth(inter_image_depth_mm)
         else:
             assert distance_mm is not None
             if distance_mm <= optics_model.focal_length_mm:
-                typer.echo(f"error: --distance-mm must exceed the focal length {optics_model.focal_length_mm} mm",
-                           err=True)
+                typer.echo(
+                    f"error: --distance-mm must exceed the focal length {optics_model.focal_length_mm} mm", err=True
+                )
                 raise typer.Exit(2)
             estimate = optics_model.from_distance(distance_mm)
         values = {

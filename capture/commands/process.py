@@ -1,8 +1,8 @@
 """`mca process`: photographs in, depth maps, regions, layers and 3D scenes out (locally, in parallel or on Dask)."""
+
 from __future__ import annotations
 
 from pathlib import Path
-from typing import List, Optional
 
 import typer
 
@@ -23,34 +23,59 @@ def resolve_profile(name: str | None):
 def register(app: typer.Typer) -> None:
     @app.command("process")
     def process(
-        inputs: List[Path] = typer.Argument(..., metavar="INPUT...",
-                                            help="Photographs (CR2, DNG, TIFF, PNG, JPEG, PPM) or folders of them."),
-        out: Optional[Path] = typer.Option(None, "--out", "-o",
-                                           help="Output folder; each input gets OUT/<stem>/ "
-                                                "(default: output_dir of the config file, see `mca config show`)."),
-        profile: Optional[str] = typer.Option(None, "--profile", "-p",
-                                              help="Built-in profile name or TOML file (default: the config file's, else paper-70d); "
-                                                   "'none' = filter geometry only, disparities in pixels."),
-        workers: Optional[int] = typer.Option(None, "--workers", "-j", min=1,
-                                              help="Files processed in parallel on this machine (default: config, 1)."),
+        inputs: list[Path] = typer.Argument(
+            ..., metavar="INPUT...", help="Photographs (CR2, DNG, TIFF, PNG, JPEG, PPM) or folders of them."
+        ),
+        out: Path | None = typer.Option(
+            None,
+            "--out",
+            "-o",
+            help="Output folder; each input gets OUT/<stem>/ "
+            "(default: output_dir of the config file, see `mca config show`).",
+        ),
+        profile: str | None = typer.Option(
+            None,
+            "--profile",
+            "-p",
+            help="Built-in profile name or TOML file (default: the config file's, else paper-70d); "
+            "'none' = filter geometry only, disparities in pixels.",
+        ),
+        workers: int | None = typer.Option(
+            None, "--workers", "-j", min=1, help="Files processed in parallel on this machine (default: config, 1)."
+        ),
         force: bool = typer.Option(False, "--force", help="Redo inputs whose output folder is already finished."),
         watch: bool = typer.Option(False, "--watch", help="Keep processing files as they arrive in the folders."),
-        watch_timeout: Optional[float] = typer.Option(None, "--watch-timeout", metavar="S",
-                                                      help="With --watch: stop after S seconds with nothing new."),
-        poll_interval: float = typer.Option(1.0, "--poll-interval", metavar="S",
-                                            help="With --watch: seconds between looks at the folders."),
-        settle: float = typer.Option(2.0, "--settle", metavar="S",
-                                     help="With --watch: take a file once unchanged for S seconds."),
-        record: Optional[Path] = typer.Option(None, "--record", metavar="FILE.rrd",
-                                              help="Record every shot (rerun); merged into FILE.rrd at the end."),
-        serve: bool = typer.Option(False, "--serve",
-                                   help="Stream every shot to a rerun web viewer while processing (one file at a "
-                                        "time); keeps serving until Ctrl-C."),
-        bind: str = typer.Option("127.0.0.1", "--bind", metavar="ADDRESS",
-                                 help="With --serve: address the viewer listens on; only an explicit "
-                                      "non-loopback address opens it to the network."),
-        cluster: Optional[str] = typer.Option(None, "--cluster", metavar="tcp://HOST:8786",
-                                              help="Run on a Dask distributed scheduler (shared filesystem)."),
+        watch_timeout: float | None = typer.Option(
+            None, "--watch-timeout", metavar="S", help="With --watch: stop after S seconds with nothing new."
+        ),
+        poll_interval: float = typer.Option(
+            1.0, "--poll-interval", metavar="S", help="With --watch: seconds between looks at the folders."
+        ),
+        settle: float = typer.Option(
+            2.0, "--settle", metavar="S", help="With --watch: take a file once unchanged for S seconds."
+        ),
+        record: Path | None = typer.Option(
+            None, "--record", metavar="FILE.rrd", help="Record every shot (rerun); merged into FILE.rrd at the end."
+        ),
+        serve: bool = typer.Option(
+            False,
+            "--serve",
+            help="Stream every shot to a rerun web viewer while processing (one file at a "
+            "time); keeps serving until Ctrl-C.",
+        ),
+        bind: str = typer.Option(
+            "127.0.0.1",
+            "--bind",
+            metavar="ADDRESS",
+            help="With --serve: address the viewer listens on; only an explicit "
+            "non-loopback address opens it to the network.",
+        ),
+        cluster: str | None = typer.Option(
+            None,
+            "--cluster",
+            metavar="tcp://HOST:8786",
+            help="Run on a Dask distributed scheduler (shared filesystem).",
+        ),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress, only the summary."),
     ) -> None:
         """Process photographs into OUT/<stem>/: depth.tiff, regions.png, result.json, all_in_focus.png, layers/,
@@ -88,17 +113,32 @@ def register(app: typer.Typer) -> None:
         live = None
         if serve:
             if workers > 1 or cluster:
-                typer.echo("error: --serve streams from this process, one file at a time: drop --workers/--cluster, "
-                           "or use --record and open the file with `mca view` afterwards", err=True)
+                typer.echo(
+                    "error: --serve streams from this process, one file at a time: drop --workers/--cluster, "
+                    "or use --record and open the file with `mca view` afterwards",
+                    err=True,
+                )
                 raise typer.Exit(2)
             from mca.capture.recording import RerunRecorder
 
             live = RerunRecorder(None, serve=True, bind=bind)
             typer.echo(f"rerun viewer: {live.viewer_url}", err=True)
         try:
-            report = run_batch(list(inputs), out, camera_profile, workers=workers, cluster=cluster, force=force,
-                               record=record, watch=watch, watch_timeout_s=watch_timeout,
-                               poll_interval_s=poll_interval, settle_s=settle, progress=progress, recorder=live)
+            report = run_batch(
+                list(inputs),
+                out,
+                camera_profile,
+                workers=workers,
+                cluster=cluster,
+                force=force,
+                record=record,
+                watch=watch,
+                watch_timeout_s=watch_timeout,
+                poll_interval_s=poll_interval,
+                settle_s=settle,
+                progress=progress,
+                recorder=live,
+            )
         except BatchError as exc:
             typer.echo(f"error: {exc}", err=True)
             if live is not None:

@@ -1,4 +1,5 @@
 """`mca profile list|show`: the camera profiles the appliance knows and what they imply."""
+
 from __future__ import annotations
 
 import typer
@@ -34,14 +35,19 @@ def _describe(name_or_path: str) -> str:
     if p.pixel_pitch_mm is not None:
         optics = MCAOptics.from_profile(p)
         lines.append(f"magnification M      {optics.magnification:.5f} (eq. 8)")
-        lines.append("disparity -> depth   " + "  ".join(
-            f"{d:+d}px:{optics.from_disparity(d).inter_object_depth_mm:+.1f}mm" for d in (-20, -10, -4, 4, 10, 20)))
+        lines.append(
+            "disparity -> depth   "
+            + "  ".join(
+                f"{d:+d}px:{optics.from_disparity(d).inter_object_depth_mm:+.1f}mm" for d in (-20, -10, -4, 4, 10, 20)
+            )
+        )
     return "\n".join(lines)
 
 
 def register(app: typer.Typer) -> None:
-    profile_app = typer.Typer(help="Camera profiles: list the built-in ones, show one with its derived optics.",
-                              no_args_is_help=True)
+    profile_app = typer.Typer(
+        help="Camera profiles: list the built-in ones, show one with its derived optics.", no_args_is_help=True
+    )
 
     @profile_app.command("list")
     def list_profiles() -> None:

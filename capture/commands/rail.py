@@ -1,4 +1,5 @@
 """`mca rail home|move MM|status`: drive the bench rail (a GRBL stage on a serial port, or `--rail sim`)."""
+
 from __future__ import annotations
 
 import typer
@@ -6,8 +7,11 @@ import typer
 SIM_SPEEDUP = 20.0  # `--rail sim` moves this many times faster than the real stage would
 
 _RAIL_OPTION = typer.Option(
-    ..., "--rail", envvar="MCA_RAIL",
-    help="Serial port of the GRBL controller (e.g. /dev/ttyUSB0), or 'sim' for the simulated controller.")
+    ...,
+    "--rail",
+    envvar="MCA_RAIL",
+    help="Serial port of the GRBL controller (e.g. /dev/ttyUSB0), or 'sim' for the simulated controller.",
+)
 
 
 def _open(rail_spec: str):  # -> devices.rail.GrblRail; imported lazily to keep `mca --help` fast
@@ -17,8 +21,9 @@ def _open(rail_spec: str):  # -> devices.rail.GrblRail; imported lazily to keep 
 
 
 def _show(status) -> str:
-    return (f"{status.state} at {status.position_mm:.3f} mm from the home switch "
-            f"(machine X {status.machine_x_mm:.3f} mm)")
+    return (
+        f"{status.state} at {status.position_mm:.3f} mm from the home switch (machine X {status.machine_x_mm:.3f} mm)"
+    )
 
 
 def _fail(error: Exception) -> None:

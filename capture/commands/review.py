@@ -3,6 +3,7 @@
 Reads `DIR/*/result.json` (written by `mca process`) and the `.rrd` recordings in `DIR` and its
 sub-folders; never imports rerun, so it is instant even on a large folder.
 """
+
 from __future__ import annotations
 
 import json
@@ -22,13 +23,13 @@ class ReviewRow:
     """One shot (an output folder) or one recording that belongs to no folder."""
 
     shot: str
-    time: str | None = None             # capture time as recorded in result.json, else None
+    time: str | None = None  # capture time as recorded in result.json, else None
     regions: int | None = None
-    nearest_mm: float | None = None     # distance of the nearest region from the lens
+    nearest_mm: float | None = None  # distance of the nearest region from the lens
     farthest_mm: float | None = None
-    nearest_px: float | None = None     # disparity-only results: smallest and largest disparity
+    nearest_px: float | None = None  # disparity-only results: smallest and largest disparity
     farthest_px: float | None = None
-    status: str = "unknown"             # done, failed, unfinished, recording only, unreadable
+    status: str = "unknown"  # done, failed, unfinished, recording only, unreadable
     recordings: list[str] = field(default_factory=list)  # .rrd paths relative to DIR
     reason: str | None = None
 
@@ -54,10 +55,13 @@ def row_from_result(folder: Path, document: dict[str, Any]) -> ReviewRow:
     """The row of one output folder from its parsed result.json."""
     regions = document.get("regions") if isinstance(document.get("regions"), list) else []
     distances = [d for d in (_finite(r.get("distance_mm")) for r in regions if isinstance(r, dict)) if d is not None]
-    disparities = [d for d in (_finite(r.get("disparity_px")) for r in regions if isinstance(r, dict))
-                   if d is not None]
-    row = ReviewRow(shot=folder.name, time=_capture_time(document), regions=len(regions),
-                    status=str(document.get("status") or "done"))
+    disparities = [d for d in (_finite(r.get("disparity_px")) for r in regions if isinstance(r, dict)) if d is not None]
+    row = ReviewRow(
+        shot=folder.name,
+        time=_capture_time(document),
+        regions=len(regions),
+        status=str(document.get("status") or "done"),
+    )
     if distances:
         row.nearest_mm, row.farthest_mm = min(distances), max(distances)
     elif disparities:  # + = farther: the smallest disparity is the nearest object
@@ -95,9 +99,15 @@ def review_rows(directory: Path) -> list[ReviewRow]:
         if path in claimed:
             continue
         stamp = datetime.fromtimestamp(path.stat().st_mtime).strftime("%Y-%m-%d %H:%M:%S")
-        rows.append(ReviewRow(shot=path.stem, time=stamp, status="recording only",
-                              recordings=[path.name], reason="merged or named recording; time is the file's"
-                              if path.stem not in stems else None))
+        rows.append(
+            ReviewRow(
+                shot=path.stem,
+                time=stamp,
+                status="recording only",
+                recordings=[path.name],
+                reason="merged or named recording; time is the file's" if path.stem not in stems else None,
+            )
+        )
     return rows
 
 
@@ -112,12 +122,26 @@ def _distance(mm: float | None, px: float | None) -> str:
 def format_table(rows: list[ReviewRow]) -> str:
     """The rows as an aligned plain-text table."""
     header = ("shot", "time", "regions", "nearest", "farthest", "status", "recording")
-    body = [(r.shot, r.time or "-", "-" if r.regions is None else str(r.regions), _distance(r.nearest_mm, r.nearest_px),
-             _distance(r.farthest_mm, r.farthest_px), r.status, ", ".join(r.recordings) or "-") for r in rows]
+    body = [
+        (
+            r.shot,
+            r.time or "-",
+            "-" if r.regions is None else str(r.regions),
+            _distance(r.nearest_mm, r.nearest_px),
+            _distance(r.farthest_mm, r.farthest_px),
+            r.status,
+            ", ".join(r.recordings) or "-",
+        )
+        for r in rows
+    ]
     widths = [max(len(line[i]) for line in [header, *body]) for i in range(len(header))]
     right = {2, 3, 4}
-    lines = ["  ".join(cell.rjust(w) if i in right else cell.ljust(w)
-                       for i, (cell, w) in enumerate(zip(line, widths))).rstrip() for line in [header, *body]]
+    lines = [
+        "  ".join(
+            cell.rjust(w) if i in right else cell.ljust(w) for i, (cell, w) in enumerate(zip(line, widths))
+        ).rstrip()
+        for line in [header, *body]
+    ]
     lines.insert(1, "  ".join("-" * w for w in widths))
     return "\n".join(lines)
 

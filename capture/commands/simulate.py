@@ -1,4 +1,5 @@
 """`mca simulate`: render the paper's Fig. 4 scenes as CR2 photographs with their ground truth."""
+
 from __future__ import annotations
 
 import typer
@@ -9,8 +10,9 @@ def register(app: typer.Typer) -> None:
     def simulate(
         scene: str = typer.Option("all", "--scene", "-s", help="paper-a ... paper-g, or all."),
         profile: str = typer.Option("paper-70d", "--profile", "-p", help="Built-in profile name or TOML file."),
-        out: str = typer.Option(..., "--out", "-o", help="Folder for <scene>.CR2, .truth.json, .depth.tiff, "
-                                                          ".labels.png."),
+        out: str = typer.Option(
+            ..., "--out", "-o", help="Folder for <scene>.CR2, .truth.json, .depth.tiff, .labels.png."
+        ),
         size: str = typer.Option("full", "--size", help="full (the profile's image size) or small (1/4)."),
         seed: int = typer.Option(0, "--seed", help="Seed of the sensor noise."),
     ) -> None:
@@ -26,8 +28,9 @@ def register(app: typer.Typer) -> None:
         names = scene_names() if scene == "all" else [scene]
         unknown = [n for n in names if n not in scene_names()]
         if unknown:
-            typer.echo(f"error: unknown scene '{unknown[0]}'; choose one of {', '.join(scene_names())} or all",
-                       err=True)
+            typer.echo(
+                f"error: unknown scene '{unknown[0]}'; choose one of {', '.join(scene_names())} or all", err=True
+            )
             raise typer.Exit(2)
         if size not in SIZES:
             typer.echo(f"error: --size must be one of {', '.join(SIZES)}", err=True)
@@ -53,6 +56,8 @@ def register(app: typer.Typer) -> None:
                 raise typer.Exit(2)
             rendered = time.perf_counter()
             paths = write_capture(capture, camera_profile, out_dir)
-            typer.echo(f" {rendered - started:.1f} s, written in {time.perf_counter() - rendered:.1f} s: "
-                       f"{paths['cr2'].name} ({len(capture.truth['objects'])} objects)")
+            typer.echo(
+                f" {rendered - started:.1f} s, written in {time.perf_counter() - rendered:.1f} s: "
+                f"{paths['cr2'].name} ({len(capture.truth['objects'])} objects)"
+            )
         typer.echo(f"done: {len(names)} scene(s) in {out_dir}")

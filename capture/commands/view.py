@@ -4,6 +4,7 @@ Usage analytics of the viewer stay off: `capture.recording.disable_rerun_analyti
 viewer starts, and the viewer gets `capture.recording.child_environment`. On a machine without a
 display, the command says how to look at the file instead.
 """
+
 from __future__ import annotations
 
 import os
@@ -12,7 +13,7 @@ from pathlib import Path
 import typer
 
 
-def has_display(environ: "os._Environ[str] | dict[str, str]" = os.environ) -> bool:
+def has_display(environ: os._Environ[str] | dict[str, str] = os.environ) -> bool:
     """True when a native window can open (X11 or Wayland on Linux; always on macOS and Windows)."""
     import sys
 
@@ -29,13 +30,15 @@ def no_display_advice(path: Path) -> str:
         sdk = version("rerun-sdk")
     except PackageNotFoundError:
         sdk = "matching"
-    return (f"No display here (neither DISPLAY nor WAYLAND_DISPLAY is set), so the native viewer cannot open.\n"
-            f"To look at {path}:\n"
-            f"  - copy it to a machine with a display and run:  rerun {path.name}\n"
-            f"    (the viewer comes with `pip install rerun-sdk=={sdk}`, the version that wrote it)\n"
-            f"  - or serve the web viewer from here:  mca view {path} --web\n"
-            f"    then open the printed http://127.0.0.1:... address in a browser on this machine,\n"
-            f"    or through an SSH tunnel: ssh -L 9090:127.0.0.1:9090 -L 9876:127.0.0.1:9876 THIS-HOST")
+    return (
+        f"No display here (neither DISPLAY nor WAYLAND_DISPLAY is set), so the native viewer cannot open.\n"
+        f"To look at {path}:\n"
+        f"  - copy it to a machine with a display and run:  rerun {path.name}\n"
+        f"    (the viewer comes with `pip install rerun-sdk=={sdk}`, the version that wrote it)\n"
+        f"  - or serve the web viewer from here:  mca view {path} --web\n"
+        f"    then open the printed http://127.0.0.1:... address in a browser on this machine,\n"
+        f"    or through an SSH tunnel: ssh -L 9090:127.0.0.1:9090 -L 9876:127.0.0.1:9876 THIS-HOST"
+    )
 
 
 def viewer_command(exe: str, paths: list[Path], *, web: bool, bind: str, web_port: int, grpc_port: int) -> list[str]:
@@ -51,8 +54,9 @@ def register(app: typer.Typer) -> None:
     def view(
         recordings: list[Path] = typer.Argument(..., metavar="FILE.rrd...", help="Recordings to open."),
         web: bool = typer.Option(False, "--web", help="Serve the web viewer instead of opening a window."),
-        bind: str = typer.Option("127.0.0.1", "--bind",
-                                 help="Address the web viewer listens on; 0.0.0.0 opens it to the network."),
+        bind: str = typer.Option(
+            "127.0.0.1", "--bind", help="Address the web viewer listens on; 0.0.0.0 opens it to the network."
+        ),
         web_port: int = typer.Option(9090, "--web-port", help="HTTP port of the web viewer."),
         grpc_port: int = typer.Option(9876, "--grpc-port", help="Port the web viewer fetches the data from."),
     ) -> None:
@@ -70,15 +74,18 @@ def register(app: typer.Typer) -> None:
             raise typer.Exit(1)
         exe = rerun_executable()
         if exe is None:
-            typer.echo("error: the `rerun` command is missing; install it with `pip install rerun-sdk==0.41.*`",
-                       err=True)
+            typer.echo(
+                "error: the `rerun` command is missing; install it with `pip install rerun-sdk==0.41.*`", err=True
+            )
             raise typer.Exit(2)
         disable_rerun_analytics()
         command = viewer_command(exe, recordings, web=web, bind=bind, web_port=web_port, grpc_port=grpc_port)
         if web:
             host = "127.0.0.1" if bind in ("0.0.0.0", "::") else bind
-            typer.echo(f"Serving {', '.join(map(str, recordings))} at http://{host}:{web_port} "
-                       f"(listening on {bind}); Ctrl-C to stop.")
+            typer.echo(
+                f"Serving {', '.join(map(str, recordings))} at http://{host}:{web_port} "
+                f"(listening on {bind}); Ctrl-C to stop."
+            )
         if os.name == "posix":  # become the viewer: Ctrl-C and signals reach it, no process is left behind
             os.execve(command[0], command, child_environment())
         try:

@@ -1,4 +1,5 @@
 """Camera profiles on disk: the built-in TOML files beside this module and user files, loaded and validated."""
+
 from __future__ import annotations
 
 import tomllib
@@ -43,8 +44,9 @@ def load_profile(name_or_path: str | Path) -> CameraProfile:
         return load_profile_file(BUILTIN_DIR / f"{text}.toml")
     path = Path(text)
     if path.suffix.lower() != ".toml" and not path.exists():
-        raise ProfileError("<name>", f"'{text}' is neither a built-in profile ({', '.join(builtin_names())}) "
-                                     "nor a TOML file", text)
+        raise ProfileError(
+            "<name>", f"'{text}' is neither a built-in profile ({', '.join(builtin_names())}) nor a TOML file", text
+        )
     return load_profile_file(path)
 
 

@@ -1,4 +1,5 @@
 """`Camera`: a PTP session over any transport, with the Canon EOS capture sequence, downloads and named properties."""
+
 from __future__ import annotations
 
 import struct
@@ -12,8 +13,8 @@ from mca.devices.ptp.codes import (
     ALL_STORAGES,
     CANON_VENDOR_EXTENSION_ID,
     CAPTURE_DESTINATION_RAM,
-    Event,
     EosProp,
+    Event,
     ObjectFormat,
     Op,
     Resp,
@@ -47,10 +48,13 @@ from mca.devices.ptp.transport import Transport, TransportError
 DOWNLOAD_BLOCK_BYTES = 1024 * 1024
 KEEP_ALIVE_INTERVAL_S = 10.0
 #: The largest file the host accepts from a camera (a 70D RAW is about 25 MB).
-MAX_OBJECT_BYTES = 2 * 1024 ** 3
-RELEASE_ERRORS = {1: "could not focus (try manual focus, more light, or a textured target)",
-                  3: "mirror lock-up is enabled (turn it off in the camera menu)",
-                  7: "the memory card is full", 8: "the memory card is write-protected"}
+MAX_OBJECT_BYTES = 2 * 1024**3
+RELEASE_ERRORS = {
+    1: "could not focus (try manual focus, more light, or a textured target)",
+    3: "mirror lock-up is enabled (turn it off in the camera menu)",
+    7: "the memory card is full",
+    8: "the memory card is write-protected",
+}
 
 ProgressFn = Callable[[int, int], None]
 
@@ -109,7 +113,7 @@ class Camera:
 
     # -- session ---------------------------------------------------------
     @classmethod
-    def open(cls, transport: Transport, session_id: int = 1) -> "Camera":
+    def open(cls, transport: Transport, session_id: int = 1) -> Camera:
         cam = cls(transport)
         cam.info = parse_device_info(cam._data(Op.GET_DEVICE_INFO))
         resp = cam._call(Op.OPEN_SESSION, (session_id,), check=False, new_session=True)
@@ -129,8 +133,11 @@ class Camera:
 
     @property
     def is_eos(self) -> bool:
-        return (self.info.vendor_extension_id == CANON_VENDOR_EXTENSION_ID
-                and self.info.supports(Op.EOS_GET_EVENT) and self.info.supports(Op.EOS_REMOTE_RELEASE))
+        return (
+            self.info.vendor_extension_id == CANON_VENDOR_EXTENSION_ID
+            and self.info.supports(Op.EOS_GET_EVENT)
+            and self.info.supports(Op.EOS_REMOTE_RELEASE)
+        )
 
     @property
     def serial_number(self) -> str:
@@ -149,7 +156,7 @@ class Camera:
             self.session_open = False
             self.transport.close()
 
-    def __enter__(self) -> "Camera":
+    def __enter__(self) -> Camera:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -163,13 +170,23 @@ class Camera:
         self._tid = (self._tid + 1) & 0xFFFFFFFF or 1
         return self._tid
 
-    def _call(self, op: int, params: tuple[int, ...] = (), *, data_out: bytes | None = None, sink=None,
-              max_data_bytes: int = 16 * 1024 * 1024, check: bool = True, new_session: bool = False,
-              timeout_s: float | None = None):
+    def _call(
+        self,
+        op: int,
+        params: tuple[int, ...] = (),
+        *,
+        data_out: bytes | None = None,
+        sink=None,
+        max_data_bytes: int = 16 * 1024 * 1024,
+        check: bool = True,
+        new_session: bool = False,
+        timeout_s: float | None = None,
+    ):
         tid = self._next_tid(new_session or not self.session_open)
         try:
-            resp = self.transport.transaction(op, tid, tuple(params), data_out=data_out, sink=sink,
-                                              max_data_bytes=max_data_bytes, timeout_s=timeout_s)
+            resp = self.transport.transaction(
+                op, tid, tuple(params), data_out=data_out, sink=sink, max_data_bytes=max_data_bytes, timeout_s=timeout_s
+            )
         except ProtocolError as exc:
             self._recover()
             raise ProtocolError(f"{self.name}: {name_of(Op, op)}: {exc}") from exc
@@ -179,8 +196,11 @@ class Camera:
             raise
         if check and resp.code != Resp.OK:
             cls = DeviceBusyError if resp.code == Resp.DEVICE_BUSY else PtpError
-            hint = "wait for the camera to finish writing, or download the shots waiting in its RAM" \
-                if resp.code == Resp.DEVICE_BUSY else ""
+            hint = (
+                "wait for the camera to finish writing, or download the shots waiting in its RAM"
+                if resp.code == Resp.DEVICE_BUSY
+                else ""
+            )
             raise cls(self.name, op, resp.code, hint)
         return resp
 
@@ -223,13 +243,23 @@ class Camera:
     def delete(self, handle: int) -> None:
         self._call(Op.DELETE_OBJECT, (handle,))
 
-    def download(self, handle: int, size_bytes: int, out: BinaryIO, *, block_bytes: int = DOWNLOAD_BLOCK_BYTES,
-                 progress: ProgressFn | None = None) -> int:
+    def download(
+        self,
+        handle: int,
+        size_bytes: int,
+        out: BinaryIO,
+        *,
+        block_bytes: int = DOWNLOAD_BLOCK_BYTES,
+        progress: ProgressFn | None = None,
+    ) -> int:
         """Copy an object into `out` in GetPartialObject blocks; returns the bytes written (== size_bytes)."""
         if not 0 <= size_bytes <= MAX_OBJECT_BYTES:
             raise ProtocolError(f"{self.name}: object size {size_bytes} is outside 0..{MAX_OBJECT_BYTES}")
-        op = Op.EOS_GET_PARTIAL_OBJECT if self.is_eos and self.info.supports(Op.EOS_GET_PARTIAL_OBJECT) \
+        op = (
+            Op.EOS_GET_PARTIAL_OBJECT
+            if self.is_eos and self.info.supports(Op.EOS_GET_PARTIAL_OBJECT)
             else Op.GET_PARTIAL_OBJECT
+        )
         done = 0
         while done < size_bytes:
             want = min(block_bytes, size_bytes - done)
@@ -295,8 +325,14 @@ class Camera:
                     handle = ev.params[0]
                     info = self.object_info(handle)
                     if info.object_format != ObjectFormat.ASSOCIATION:
-                        return CapturedObject(handle, info.filename, info.compressed_size_bytes, info.object_format,
-                                              info.storage_id, False)
+                        return CapturedObject(
+                            handle,
+                            info.filename,
+                            info.compressed_size_bytes,
+                            info.object_format,
+                            info.storage_id,
+                            False,
+                        )
             self.keep_alive()
             if time.monotonic() >= deadline or (stop is not None and stop()):
                 return None
@@ -307,12 +343,14 @@ class Camera:
     def _take_object(self, events: list[EosEvent]) -> CapturedObject | None:
         for i, e in enumerate(events):
             if isinstance(e, EosObjectAdded) and not e.changed and e.object_format != ObjectFormat.ASSOCIATION:
-                self._pending_events = [x for x in events[i + 1:] if isinstance(x, (EosObjectAdded, EosRequestObjectTransfer))] \
-                    + [x for x in self._pending_events if x not in events]
+                self._pending_events = [
+                    x for x in events[i + 1 :] if isinstance(x, (EosObjectAdded, EosRequestObjectTransfer))
+                ] + [x for x in self._pending_events if x not in events]
                 return CapturedObject(e.handle, e.filename, e.size_bytes, e.object_format, e.storage_id, False)
             if isinstance(e, EosRequestObjectTransfer):
-                self._pending_events = [x for x in events[i + 1:] if isinstance(x, (EosObjectAdded, EosRequestObjectTransfer))] \
-                    + [x for x in self._pending_events if x not in events]
+                self._pending_events = [
+                    x for x in events[i + 1 :] if isinstance(x, (EosObjectAdded, EosRequestObjectTransfer))
+                ] + [x for x in self._pending_events if x not in events]
                 return CapturedObject(e.handle, e.filename, e.size_bytes, e.object_format, 0, True)
         if events is self._pending_events:
             self._pending_events = []
@@ -346,13 +384,17 @@ class Camera:
         else:
             resp = self._call(Op.EOS_REMOTE_RELEASE)
             if resp.params and resp.params[0]:
-                raise CaptureError(f"{self.name}: remote release failed: "
-                                   f"{RELEASE_ERRORS.get(resp.params[0], f'code {resp.params[0]}')}")
+                raise CaptureError(
+                    f"{self.name}: remote release failed: "
+                    f"{RELEASE_ERRORS.get(resp.params[0], f'code {resp.params[0]}')}"
+                )
         found = self.wait_for_object(timeout_s)
         self._pending_events = backlog + self._pending_events
         if found is None:
-            raise CaptureError(f"{self.name}: no new file within {timeout_s:.0f} s after the release; "
-                               "check focus, the card, and that the camera is not in live view")
+            raise CaptureError(
+                f"{self.name}: no new file within {timeout_s:.0f} s after the release; "
+                "check focus, the card, and that the camera is not in live view"
+            )
         return found
 
     # -- properties ------------------------------------------------------
@@ -367,8 +409,9 @@ class Camera:
             allowed = self._eos_allowed.get(spec.eos_code)
             if spec.eos_code == EosProp.IMAGE_FORMAT:
                 value = _image_format_name(parse_image_format(Reader(current.raw)))
-                names = tuple(_image_format_name(parse_image_format(Reader(r)))
-                              for r in (allowed.raw_values if allowed else ()))
+                names = tuple(
+                    _image_format_name(parse_image_format(Reader(r))) for r in (allowed.raw_values if allowed else ())
+                )
                 return PropertyValue(spec.name, value, names, spec.eos_code)
             table = spec.table or {}
             value = table.get(current.value, f"0x{current.value:X}")
@@ -386,8 +429,11 @@ class Camera:
     def set_property(self, name: str, value: str) -> PropertyValue:
         spec = spec_for(name)
         current = self.get_property(spec.name)
-        wanted = CAPTURE_TARGET_ALIASES.get(value.strip().lower(), value.strip()) if spec.name == "capturetarget" \
+        wanted = (
+            CAPTURE_TARGET_ALIASES.get(value.strip().lower(), value.strip())
+            if spec.name == "capturetarget"
             else value.strip()
+        )
         if self.is_eos:
             if spec.eos_code == EosProp.IMAGE_FORMAT:
                 entries = {n.lower(): e for e, n in EOS_IMAGE_FORMATS.items()}
@@ -396,16 +442,25 @@ class Camera:
                 body = pack_image_format(entries[wanted.lower()])
             else:
                 codes = {n.lower(): c for c, n in (spec.table or {}).items()}
-                if wanted.lower() not in codes or (current.allowed and
-                                                   (spec.table or {})[codes[wanted.lower()]] not in current.allowed):
-                    raise ValueError(f"{wanted!r} is not allowed for {spec.name}; choose from {', '.join(current.allowed)}")
+                if wanted.lower() not in codes or (
+                    current.allowed and (spec.table or {})[codes[wanted.lower()]] not in current.allowed
+                ):
+                    raise ValueError(
+                        f"{wanted!r} is not allowed for {spec.name}; choose from {', '.join(current.allowed)}"
+                    )
                 body = struct.pack("<I", codes[wanted.lower()])
-                if spec.eos_code == EosProp.CAPTURE_DESTINATION and current.value == (spec.table or {})[codes[wanted.lower()]]:
+                if (
+                    spec.eos_code == EosProp.CAPTURE_DESTINATION
+                    and current.value == (spec.table or {})[codes[wanted.lower()]]
+                ):
                     return current  # setting the same destination can answer DeviceBusy on EOS bodies
             data = struct.pack("<II", 8 + len(body), spec.eos_code) + body
             self._call(Op.EOS_SET_DEVICE_PROP_VALUE_EX, data_out=data)
-            if spec.eos_code == EosProp.CAPTURE_DESTINATION and codes[wanted.lower()] == CAPTURE_DESTINATION_RAM \
-                    and self.info.supports(Op.EOS_PC_HDD_CAPACITY):
+            if (
+                spec.eos_code == EosProp.CAPTURE_DESTINATION
+                and codes[wanted.lower()] == CAPTURE_DESTINATION_RAM
+                and self.info.supports(Op.EOS_PC_HDD_CAPACITY)
+            ):
                 self._call(Op.EOS_PC_HDD_CAPACITY, (0x0FFFFFF8, 0x1000, 1), check=False)
             self.poll_events()
             return self.get_property(spec.name)

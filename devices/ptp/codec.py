@@ -3,6 +3,7 @@
 Nothing here does I/O. Parsers take bytes and return values or raise
 `ProtocolError`; they never allocate more than the input justifies.
 """
+
 from __future__ import annotations
 
 import struct
@@ -92,7 +93,9 @@ def pack_data(code: int, transaction_id: int, payload: bytes) -> bytes:
     return pack_data_header(code, transaction_id, len(payload)) + bytes(payload)
 
 
-def parse_header(buf: bytes | bytearray | memoryview, max_container_bytes: int = MAX_CONTAINER_BYTES) -> ContainerHeader:
+def parse_header(
+    buf: bytes | bytearray | memoryview, max_container_bytes: int = MAX_CONTAINER_BYTES
+) -> ContainerHeader:
     """Parse the 12-byte container header and check its claimed length."""
     if len(buf) < HEADER_BYTES:
         raise ProtocolError(f"container header needs {HEADER_BYTES} bytes, got {len(buf)}")
@@ -107,7 +110,9 @@ def parse_header(buf: bytes | bytearray | memoryview, max_container_bytes: int =
         limit = MAX_EVENT_PARAMS if kind == ContainerType.EVENT else MAX_PARAMS
         extra = length - HEADER_BYTES
         if extra % 4 or extra // 4 > limit:
-            raise ProtocolError(f"{ContainerType(kind).name.lower()} container of {length} bytes is not a header plus at most {limit} u32 parameters")
+            raise ProtocolError(
+                f"{ContainerType(kind).name.lower()} container of {length} bytes is not a header plus at most {limit} u32 parameters"
+            )
     return ContainerHeader(length, kind, code, tid)
 
 
@@ -116,7 +121,7 @@ def parse_container(buf: bytes | bytearray | memoryview, max_container_bytes: in
     header = parse_header(buf, max_container_bytes)
     if len(buf) != header.length:
         raise ProtocolError(f"container claims {header.length} bytes but {len(buf)} were given")
-    body = bytes(buf[HEADER_BYTES:header.length])
+    body = bytes(buf[HEADER_BYTES : header.length])
     if header.type == ContainerType.DATA:
         return Container(header.type, header.code, header.transaction_id, (), body)
     params = struct.unpack(f"<{len(body) // 4}I", body)
@@ -133,7 +138,7 @@ def parse_params(body: bytes | memoryview, limit: int = MAX_PARAMS) -> tuple[int
 class Reader:
     """A bounded cursor over a dataset: every read checks the bytes that remain."""
 
-    __slots__ = ("_buf", "pos", "end")
+    __slots__ = ("_buf", "end", "pos")
 
     def __init__(self, buf: bytes | bytearray | memoryview, start: int = 0, end: int | None = None) -> None:
         self._buf = bytes(buf) if not isinstance(buf, bytes) else buf
@@ -146,7 +151,9 @@ class Reader:
 
     def _need(self, n: int, what: str) -> None:
         if n < 0 or self.pos + n > self.end:
-            raise ProtocolError(f"truncated dataset: {what} needs {n} bytes at offset {self.pos}, {self.remaining} left")
+            raise ProtocolError(
+                f"truncated dataset: {what} needs {n} bytes at offset {self.pos}, {self.remaining} left"
+            )
 
     def u8(self) -> int:
         self._need(1, "u8")
@@ -181,7 +188,7 @@ class Reader:
 
     def take(self, n: int) -> bytes:
         self._need(n, "block")
-        v = self._buf[self.pos:self.pos + n]
+        v = self._buf[self.pos : self.pos + n]
         self.pos += n
         return v
 
@@ -208,7 +215,7 @@ class Reader:
     def cstring_ascii(self, max_bytes: int | None = None) -> str:
         """NUL-terminated ASCII (the EOS event file names); stops at the end of the record."""
         limit = self.end if max_bytes is None else min(self.end, self.pos + max_bytes)
-        raw = self._buf[self.pos:limit]
+        raw = self._buf[self.pos : limit]
         nul = raw.find(b"\x00")
         if nul >= 0:
             raw = raw[:nul]

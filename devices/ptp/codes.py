@@ -1,4 +1,5 @@
 """PTP and Canon EOS numeric codes: operations, responses, events, object formats and device properties."""
+
 from __future__ import annotations
 
 from enum import IntEnum

@@ -1,4 +1,5 @@
 """PTP datasets (DeviceInfo, StorageInfo, ObjectInfo, DevicePropDesc): dataclasses with pure pack/parse functions."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -55,25 +56,44 @@ class DeviceInfo:
 
 
 def pack_device_info(info: DeviceInfo) -> bytes:
-    return b"".join([
-        u16(info.standard_version), u32(info.vendor_extension_id), u16(info.vendor_extension_version),
-        pack_string(info.vendor_extension_desc), u16(info.functional_mode),
-        pack_array("H", info.operations), pack_array("H", info.events), pack_array("H", info.properties),
-        pack_array("H", info.capture_formats), pack_array("H", info.image_formats),
-        pack_string(info.manufacturer), pack_string(info.model), pack_string(info.device_version),
-        pack_string(info.serial_number),
-    ])
+    return b"".join(
+        [
+            u16(info.standard_version),
+            u32(info.vendor_extension_id),
+            u16(info.vendor_extension_version),
+            pack_string(info.vendor_extension_desc),
+            u16(info.functional_mode),
+            pack_array("H", info.operations),
+            pack_array("H", info.events),
+            pack_array("H", info.properties),
+            pack_array("H", info.capture_formats),
+            pack_array("H", info.image_formats),
+            pack_string(info.manufacturer),
+            pack_string(info.model),
+            pack_string(info.device_version),
+            pack_string(info.serial_number),
+        ]
+    )
 
 
 def parse_device_info(buf: bytes | bytearray | memoryview) -> DeviceInfo:
     _check_size(buf, "DeviceInfo")
     r = Reader(buf)
     return DeviceInfo(
-        standard_version=r.u16(), vendor_extension_id=r.u32(), vendor_extension_version=r.u16(),
-        vendor_extension_desc=r.string(), functional_mode=r.u16(),
-        operations=r.array("H"), events=r.array("H"), properties=r.array("H"),
-        capture_formats=r.array("H"), image_formats=r.array("H"),
-        manufacturer=r.string(), model=r.string(), device_version=r.string(), serial_number=r.string(),
+        standard_version=r.u16(),
+        vendor_extension_id=r.u32(),
+        vendor_extension_version=r.u16(),
+        vendor_extension_desc=r.string(),
+        functional_mode=r.u16(),
+        operations=r.array("H"),
+        events=r.array("H"),
+        properties=r.array("H"),
+        capture_formats=r.array("H"),
+        image_formats=r.array("H"),
+        manufacturer=r.string(),
+        model=r.string(),
+        device_version=r.string(),
+        serial_number=r.string(),
     )
 
 
@@ -90,11 +110,18 @@ class StorageInfo:
 
 
 def pack_storage_info(info: StorageInfo) -> bytes:
-    return b"".join([
-        u16(info.storage_type), u16(info.filesystem_type), u16(info.access_capability),
-        u64(info.max_capacity_bytes), u64(info.free_space_bytes), u32(info.free_space_images),
-        pack_string(info.description), pack_string(info.volume_label),
-    ])
+    return b"".join(
+        [
+            u16(info.storage_type),
+            u16(info.filesystem_type),
+            u16(info.access_capability),
+            u64(info.max_capacity_bytes),
+            u64(info.free_space_bytes),
+            u32(info.free_space_images),
+            pack_string(info.description),
+            pack_string(info.volume_label),
+        ]
+    )
 
 
 def parse_storage_info(buf: bytes | bytearray | memoryview) -> StorageInfo:
@@ -127,26 +154,53 @@ class ObjectInfo:
 
 
 def pack_object_info(info: ObjectInfo) -> bytes:
-    return b"".join([
-        u32(info.storage_id), u16(info.object_format), u16(info.protection_status),
-        u32(info.compressed_size_bytes), u16(info.thumb_format), u32(info.thumb_compressed_size_bytes),
-        u32(info.thumb_width_px), u32(info.thumb_height_px), u32(info.image_width_px),
-        u32(info.image_height_px), u32(info.image_bit_depth), u32(info.parent_object),
-        u16(info.association_type), u32(info.association_desc), u32(info.sequence_number),
-        pack_string(info.filename), pack_string(info.capture_date), pack_string(info.modification_date),
-        pack_string(info.keywords),
-    ])
+    return b"".join(
+        [
+            u32(info.storage_id),
+            u16(info.object_format),
+            u16(info.protection_status),
+            u32(info.compressed_size_bytes),
+            u16(info.thumb_format),
+            u32(info.thumb_compressed_size_bytes),
+            u32(info.thumb_width_px),
+            u32(info.thumb_height_px),
+            u32(info.image_width_px),
+            u32(info.image_height_px),
+            u32(info.image_bit_depth),
+            u32(info.parent_object),
+            u16(info.association_type),
+            u32(info.association_desc),
+            u32(info.sequence_number),
+            pack_string(info.filename),
+            pack_string(info.capture_date),
+            pack_string(info.modification_date),
+            pack_string(info.keywords),
+        ]
+    )
 
 
 def parse_object_info(buf: bytes | bytearray | memoryview) -> ObjectInfo:
     _check_size(buf, "ObjectInfo")
     r = Reader(buf)
     return ObjectInfo(
-        storage_id=r.u32(), object_format=r.u16(), protection_status=r.u16(), compressed_size_bytes=r.u32(),
-        thumb_format=r.u16(), thumb_compressed_size_bytes=r.u32(), thumb_width_px=r.u32(),
-        thumb_height_px=r.u32(), image_width_px=r.u32(), image_height_px=r.u32(), image_bit_depth=r.u32(),
-        parent_object=r.u32(), association_type=r.u16(), association_desc=r.u32(), sequence_number=r.u32(),
-        filename=r.string(), capture_date=r.string(), modification_date=r.string(),
+        storage_id=r.u32(),
+        object_format=r.u16(),
+        protection_status=r.u16(),
+        compressed_size_bytes=r.u32(),
+        thumb_format=r.u16(),
+        thumb_compressed_size_bytes=r.u32(),
+        thumb_width_px=r.u32(),
+        thumb_height_px=r.u32(),
+        image_width_px=r.u32(),
+        image_height_px=r.u32(),
+        image_bit_depth=r.u32(),
+        parent_object=r.u32(),
+        association_type=r.u16(),
+        association_desc=r.u32(),
+        sequence_number=r.u32(),
+        filename=r.string(),
+        capture_date=r.string(),
+        modification_date=r.string(),
         keywords=r.string() if r.remaining else "",
     )
 
@@ -211,8 +265,13 @@ def parse_prop_value(buf: bytes | bytearray | memoryview, datatype: int) -> Prop
 
 
 def pack_prop_desc(desc: DevicePropDesc) -> bytes:
-    parts = [u16(desc.code), u16(desc.datatype), bytes([1 if desc.writable else 0]),
-             _pack_value(desc.datatype, desc.factory_default), _pack_value(desc.datatype, desc.current)]
+    parts = [
+        u16(desc.code),
+        u16(desc.datatype),
+        bytes([1 if desc.writable else 0]),
+        _pack_value(desc.datatype, desc.factory_default),
+        _pack_value(desc.datatype, desc.current),
+    ]
     if desc.form == "range":
         parts += [b"\x01"] + [_pack_value(desc.datatype, v) for v in (desc.range_min, desc.range_max, desc.range_step)]
     elif desc.form == "enum":

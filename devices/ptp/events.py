@@ -3,6 +3,7 @@
 Record layout (all little-endian): u32 size, u32 code, body; the list ends
 with a record of size 8 and code 0. Offsets below are from the record start.
 """
+
 from __future__ import annotations
 
 import struct
@@ -77,8 +78,15 @@ class EosUnknownEvent:
     body: bytes = field(repr=False)
 
 
-EosEvent = (EosObjectAdded | EosRequestObjectTransfer | EosObjectRemoved | EosPropValueChanged
-            | EosAvailListChanged | EosCameraStatus | EosUnknownEvent)
+EosEvent = (
+    EosObjectAdded
+    | EosRequestObjectTransfer
+    | EosObjectRemoved
+    | EosPropValueChanged
+    | EosAvailListChanged
+    | EosCameraStatus
+    | EosUnknownEvent
+)
 
 
 # ImageFormat (0xD120) values are a struct: u32 count (1 or 2), then per file u32 0x10, type, size, compression.
@@ -124,12 +132,27 @@ def _record(code: int, body: bytes) -> bytes:
 def pack_eos_event(event: EosEvent) -> bytes:
     """One record, size included."""
     if isinstance(event, EosObjectAdded):
-        body = struct.pack("<IIHHIIII", event.handle, event.storage_id, event.object_format, 0, 0, 0,
-                           event.size_bytes, event.parent) + u32(0) + _name_field(event.filename)
+        body = (
+            struct.pack(
+                "<IIHHIIII",
+                event.handle,
+                event.storage_id,
+                event.object_format,
+                0,
+                0,
+                0,
+                event.size_bytes,
+                event.parent,
+            )
+            + u32(0)
+            + _name_field(event.filename)
+        )
         code = EosEventCode.OBJECT_INFO_CHANGED_EX if event.changed else EosEventCode.OBJECT_ADDED_EX
         return _record(code, _pad4(body))
     if isinstance(event, EosRequestObjectTransfer):
-        body = struct.pack("<IIIII", event.handle, event.object_format, 0, event.size_bytes, 0) + _name_field(event.filename)
+        body = struct.pack("<IIIII", event.handle, event.object_format, 0, event.size_bytes, 0) + _name_field(
+            event.filename
+        )
         return _record(EosEventCode.REQUEST_OBJECT_TRANSFER, _pad4(body))
     if isinstance(event, EosObjectRemoved):
         return _record(EosEventCode.OBJECT_REMOVED, u32(event.handle))
@@ -158,7 +181,9 @@ def _parse_record(code: int, r: Reader) -> EosEvent:
         size, parent = r.u32(), r.u32()
         r.take(4)
         name = r.cstring_ascii(MAX_EVENT_FILENAME_BYTES)
-        return EosObjectAdded(handle, storage, fmt, size, parent, name, changed=code == EosEventCode.OBJECT_INFO_CHANGED_EX)
+        return EosObjectAdded(
+            handle, storage, fmt, size, parent, name, changed=code == EosEventCode.OBJECT_INFO_CHANGED_EX
+        )
     if code == EosEventCode.REQUEST_OBJECT_TRANSFER:
         handle, fmt = r.u32(), r.u32()
         r.take(4)
@@ -184,11 +209,11 @@ def _parse_record(code: int, r: Reader) -> EosEvent:
             for _ in range(count):
                 start = r.pos
                 parse_image_format(r)
-                raws.append(r._buf[start:r.pos])  # noqa: SLF001 - slice of our own buffer
+                raws.append(r._buf[start : r.pos])
             return EosAvailListChanged(prop, datatype, tuple(range(len(raws))), tuple(raws))
         if count * 4 > r.remaining:
             raise ProtocolError(f"AvailListChanged claims {count} values in {r.remaining} bytes")
-        values = struct.unpack_from(f"<{count}I", r._buf, r.pos)  # noqa: SLF001
+        values = struct.unpack_from(f"<{count}I", r._buf, r.pos)
         r.pos += 4 * count
         return EosAvailListChanged(prop, datatype, values)
     if code == EosEventCode.CAMERA_STATUS_CHANGED:

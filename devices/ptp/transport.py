@@ -1,4 +1,5 @@
 """The transport interface a `Camera` talks through (USB, PTP/IP, ...), and the errors transports raise."""
+
 from __future__ import annotations
 
 from abc import ABC, abstractmethod

@@ -5,6 +5,7 @@ OperationRequest, StartData/Data/EndData and OperationResponse; the event
 connection carries Event packets. The simulated camera's server reuses the
 same functions from the other side.
 """
+
 from __future__ import annotations
 
 import select
@@ -82,7 +83,9 @@ def parse_init_command_request(body: bytes) -> InitCommandRequest:
 
 
 def pack_init_command_ack(connection_id: int, guid: bytes, name: str, version: int = PROTOCOL_VERSION) -> bytes:
-    return pack_packet(INIT_COMMAND_ACK, struct.pack("<I", connection_id) + guid + _utf16z(name) + struct.pack("<I", version))
+    return pack_packet(
+        INIT_COMMAND_ACK, struct.pack("<I", connection_id) + guid + _utf16z(name) + struct.pack("<I", version)
+    )
 
 
 def parse_init_command_ack(body: bytes) -> tuple[int, bytes, str]:
@@ -93,8 +96,10 @@ def parse_init_command_ack(body: bytes) -> tuple[int, bytes, str]:
 def pack_operation_request(code: int, transaction_id: int, params: tuple[int, ...] = (), dataphase: int = 1) -> bytes:
     if len(params) > 5:
         raise ProtocolError("at most 5 parameters")
-    return pack_packet(OPERATION_REQUEST, struct.pack("<IHI", dataphase, code, transaction_id)
-                       + struct.pack(f"<{len(params)}I", *params))
+    return pack_packet(
+        OPERATION_REQUEST,
+        struct.pack("<IHI", dataphase, code, transaction_id) + struct.pack(f"<{len(params)}I", *params),
+    )
 
 
 def parse_operation_request(body: bytes) -> tuple[int, Container]:
@@ -106,7 +111,9 @@ def parse_operation_request(body: bytes) -> tuple[int, Container]:
 
 
 def pack_operation_response(code: int, transaction_id: int, params: tuple[int, ...] = ()) -> bytes:
-    return pack_packet(OPERATION_RESPONSE, struct.pack("<HI", code, transaction_id) + struct.pack(f"<{len(params)}I", *params))
+    return pack_packet(
+        OPERATION_RESPONSE, struct.pack("<HI", code, transaction_id) + struct.pack(f"<{len(params)}I", *params)
+    )
 
 
 def parse_operation_response(body: bytes) -> Container:
@@ -153,14 +160,16 @@ class _Conn:
         try:
             self.sock.sendall(data)
         except OSError as exc:
-            raise DeviceDisconnected(f"{self.name}: connection lost while sending ({exc}); restart the camera's network link") from exc
+            raise DeviceDisconnected(
+                f"{self.name}: connection lost while sending ({exc}); restart the camera's network link"
+            ) from exc
 
     def recv_into(self, view: memoryview) -> None:
         got = 0
         while got < len(view):
             try:
                 n = self.sock.recv_into(view[got:])
-            except socket.timeout as exc:
+            except TimeoutError as exc:
                 raise TransportTimeout(f"{self.name} did not answer in time") from exc
             except OSError as exc:
                 raise DeviceDisconnected(f"{self.name}: connection lost ({exc})") from exc
@@ -181,22 +190,27 @@ class _Conn:
 class PtpIpTransport(Transport):
     """The initiator (host) side of PTP/IP."""
 
-    def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_PORT, *, timeout_s: float = 5.0,
-                 name: str = "mca") -> None:
+    def __init__(
+        self, host: str = "127.0.0.1", port: int = DEFAULT_PORT, *, timeout_s: float = 5.0, name: str = "mca"
+    ) -> None:
         self.name = f"ptpip:{host}:{port}"
         self.timeout_s = timeout_s
         self._closed = False
         try:
             cmd = socket.create_connection((host, port), timeout=timeout_s)
         except OSError as exc:
-            raise TransportError(f"cannot reach {self.name}: {exc}; is the camera (or `mca camera serve-sim`) running?") from exc
+            raise TransportError(
+                f"cannot reach {self.name}: {exc}; is the camera (or `mca camera serve-sim`) running?"
+            ) from exc
         cmd.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self.cmd = _Conn(cmd, self.name)
         self.cmd.send(pack_init_command_request(uuid.uuid4().bytes, name))
         kind, body = self.cmd.recv_packet()
         if kind != INIT_COMMAND_ACK:
             cmd.close()
-            raise TransportError(f"{self.name} refused the connection (packet type {kind}); accept the host on the camera")
+            raise TransportError(
+                f"{self.name} refused the connection (packet type {kind}); accept the host on the camera"
+            )
         self.connection_id, self.camera_guid, self.camera_name = parse_init_command_ack(body)
         evt = socket.create_connection((host, port), timeout=timeout_s)
         self.evt = _Conn(evt, self.name)
@@ -206,13 +220,25 @@ class PtpIpTransport(Transport):
             self.close()
             raise TransportError(f"{self.name} refused the event connection (packet type {kind})")
 
-    def transaction(self, code, transaction_id, params=(), *, data_out=None, sink=None,
-                    max_data_bytes=64 * 1024 * 1024, timeout_s=None) -> Response:
+    def transaction(
+        self,
+        code,
+        transaction_id,
+        params=(),
+        *,
+        data_out=None,
+        sink=None,
+        max_data_bytes=64 * 1024 * 1024,
+        timeout_s=None,
+    ) -> Response:
         if self._closed:
             raise TransportError(f"{self.name} is closed")
         self.cmd.sock.settimeout(self.timeout_s if timeout_s is None else timeout_s)
-        self.cmd.send(pack_operation_request(code, transaction_id, tuple(params),
-                                             DATAPHASE_OUT if data_out is not None else DATAPHASE_NONE_OR_IN))
+        self.cmd.send(
+            pack_operation_request(
+                code, transaction_id, tuple(params), DATAPHASE_OUT if data_out is not None else DATAPHASE_NONE_OR_IN
+            )
+        )
         if data_out is not None:
             self.cmd.send(pack_start_data(transaction_id, len(data_out)))
             self.cmd.send(pack_data_packet(transaction_id, data_out, end=True))
@@ -220,18 +246,20 @@ class PtpIpTransport(Transport):
         got = 0
         data: bytearray | None = None
         while True:
-            body_len, kind = parse_packet_header(self.cmd.recv_exact(8), max(max_data_bytes + 4, MAX_CONTROL_PACKET_BYTES))
+            body_len, kind = parse_packet_header(
+                self.cmd.recv_exact(8), max(max_data_bytes + 4, MAX_CONTROL_PACKET_BYTES)
+            )
             if kind in (DATA, END_DATA):
                 if total is None:
                     raise ProtocolError(f"{self.name} sent data without StartData")
                 if body_len < 4:
                     raise ProtocolError(f"{self.name} sent a data packet without its transaction id")
-                (tid,) = struct.unpack("<I", self.cmd.recv_exact(4))
+                (_tid,) = struct.unpack("<I", self.cmd.recv_exact(4))
                 n = body_len - 4
                 if got + n > total:
                     raise ProtocolError(f"{self.name} sent {got + n} data bytes after announcing {total}")
                 if sink is None:
-                    self.cmd.recv_into(memoryview(data)[got:got + n])  # type: ignore[arg-type]
+                    self.cmd.recv_into(memoryview(data)[got : got + n])  # type: ignore[arg-type]
                 else:
                     piece = bytearray(n)
                     self.cmd.recv_into(memoryview(piece))
@@ -242,14 +270,18 @@ class PtpIpTransport(Transport):
             if kind == START_DATA:
                 _, total = parse_start_data(body)
                 if total > max_data_bytes:
-                    raise ProtocolError(f"{self.name} announced {total} data bytes, more than the {max_data_bytes} expected")
+                    raise ProtocolError(
+                        f"{self.name} announced {total} data bytes, more than the {max_data_bytes} expected"
+                    )
                 if sink is None:
                     data = bytearray(total)
                 continue
             if kind == OPERATION_RESPONSE:
                 resp = parse_operation_response(body)
                 if resp.transaction_id != transaction_id:
-                    raise ProtocolError(f"{self.name} answered transaction {resp.transaction_id}, expected {transaction_id}")
+                    raise ProtocolError(
+                        f"{self.name} answered transaction {resp.transaction_id}, expected {transaction_id}"
+                    )
                 if total is not None and got != total:
                     raise ProtocolError(f"{self.name} sent {got} of the {total} data bytes it announced")
                 return Response(resp.code, resp.params, bytes(data) if data is not None else None, got)

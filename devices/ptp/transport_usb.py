@@ -5,6 +5,7 @@ rules (zero-length packets after full packets, stray ZLPs, bytes beyond the
 current container). The simulated EOS 70D is reached through this very code
 with `find_cameras(backend=SimUsbBackend(...))`.
 """
+
 from __future__ import annotations
 
 import array
@@ -67,7 +68,7 @@ def default_backend() -> Any:
         import libusb_package
 
         return libusb_package.get_libusb1_backend()
-    except Exception:  # noqa: BLE001 - fall back to whatever pyusb finds
+    except Exception:
         return None
 
 
@@ -78,7 +79,7 @@ def _string(dev: Any, index: int) -> str:
         import usb.util
 
         return usb.util.get_string(dev, index) or ""
-    except Exception:  # noqa: BLE001 - permissions or a camera that refuses string requests
+    except Exception:
         return ""
 
 
@@ -96,18 +97,26 @@ def find_cameras(backend: Any = None) -> list[UsbCameraInfo]:
     for dev in devices:
         try:
             configs = list(dev)
-        except Exception:  # noqa: BLE001 - a device whose descriptors cannot be read is not ours
+        except Exception:
             continue
         for cfg in configs:
             for intf in cfg:
                 if (intf.bInterfaceClass, intf.bInterfaceSubClass, intf.bInterfaceProtocol) != PTP_CLASS:
                     continue
-                found.append(UsbCameraInfo(
-                    bus=int(dev.bus or 0), address=int(dev.address or 0), vendor_id=dev.idVendor,
-                    product_id=dev.idProduct, configuration_value=cfg.bConfigurationValue,
-                    interface_number=intf.bInterfaceNumber, manufacturer=_string(dev, dev.iManufacturer),
-                    product=_string(dev, dev.iProduct), serial_number=_string(dev, dev.iSerialNumber), device=dev,
-                ))
+                found.append(
+                    UsbCameraInfo(
+                        bus=int(dev.bus or 0),
+                        address=int(dev.address or 0),
+                        vendor_id=dev.idVendor,
+                        product_id=dev.idProduct,
+                        configuration_value=cfg.bConfigurationValue,
+                        interface_number=intf.bInterfaceNumber,
+                        manufacturer=_string(dev, dev.iManufacturer),
+                        product=_string(dev, dev.iProduct),
+                        serial_number=_string(dev, dev.iSerialNumber),
+                        device=dev,
+                    )
+                )
                 break
     found.sort(key=lambda c: (not c.is_canon, c.bus, c.address))
     return found
@@ -150,9 +159,13 @@ class UsbTransport(Transport):
             intf = usb.util.find_descriptor(cfg, bInterfaceNumber=info.interface_number)
             usb.util.claim_interface(self.dev, info.interface_number)
         except usb.core.USBError as exc:
-            hint = ("another program holds the camera (stop gvfs-gphoto2-volume-monitor)" if exc.errno == errno.EBUSY
-                    else "check the udev rule for PTP cameras (see docs/tethering.md)" if exc.errno == errno.EACCES
-                    else "unplug and replug the camera")
+            hint = (
+                "another program holds the camera (stop gvfs-gphoto2-volume-monitor)"
+                if exc.errno == errno.EBUSY
+                else "check the udev rule for PTP cameras (see docs/tethering.md)"
+                if exc.errno == errno.EACCES
+                else "unplug and replug the camera"
+            )
             raise TransportError(f"could not claim {self.name}: {exc}; {hint}") from exc
         self.interface_number = info.interface_number
         self.ep_in = self.ep_out = self.ep_int = None
@@ -199,7 +212,9 @@ class UsbTransport(Transport):
         zlps = 0
         while True:
             try:
-                n = self.dev.read(self.ep_in.bEndpointAddress, self._rx, self._ms(max(0.001, deadline - time.monotonic())))
+                n = self.dev.read(
+                    self.ep_in.bEndpointAddress, self._rx, self._ms(max(0.001, deadline - time.monotonic()))
+                )
             except self._usb_core.USBError as exc:
                 raise self._wrap(exc, "a read") from exc
             if n:
@@ -223,8 +238,17 @@ class UsbTransport(Transport):
         return parse_header(head), head
 
     # -- transactions ----------------------------------------------------
-    def transaction(self, code, transaction_id, params=(), *, data_out=None, sink=None,
-                    max_data_bytes=64 * 1024 * 1024, timeout_s=None) -> Response:
+    def transaction(
+        self,
+        code,
+        transaction_id,
+        params=(),
+        *,
+        data_out=None,
+        sink=None,
+        max_data_bytes=64 * 1024 * 1024,
+        timeout_s=None,
+    ) -> Response:
         if self._closed:
             raise TransportError(f"{self.name} is closed")
         self._write(pack_command(code, transaction_id, params), timeout_s)
@@ -235,7 +259,9 @@ class UsbTransport(Transport):
         while True:
             header, head = self._read_container_header(timeout_s)
             if header.transaction_id != transaction_id:
-                raise ProtocolError(f"{self.name} answered transaction {header.transaction_id}, expected {transaction_id}")
+                raise ProtocolError(
+                    f"{self.name} answered transaction {header.transaction_id}, expected {transaction_id}"
+                )
             if header.type == ContainerType.DATA:
                 if data_bytes or data is not None:
                     raise ProtocolError(f"{self.name} sent two data phases for one transaction")
@@ -243,7 +269,9 @@ class UsbTransport(Transport):
                     raise ProtocolError(f"{self.name} data phase code 0x{header.code:04X} for operation 0x{code:04X}")
                 remaining = header.payload_bytes
                 if remaining > max_data_bytes:
-                    raise ProtocolError(f"{self.name} announced {remaining} data bytes, more than the {max_data_bytes} expected")
+                    raise ProtocolError(
+                        f"{self.name} announced {remaining} data bytes, more than the {max_data_bytes} expected"
+                    )
                 if sink is None:
                     data = bytearray(remaining)
                 while remaining:
@@ -251,7 +279,7 @@ class UsbTransport(Transport):
                     take = min(remaining, len(chunk))
                     piece = chunk[:take]
                     if sink is None:
-                        data[data_bytes:data_bytes + take] = piece  # type: ignore[index]
+                        data[data_bytes : data_bytes + take] = piece  # type: ignore[index]
                     else:
                         sink(piece)
                     data_bytes += take
@@ -260,7 +288,9 @@ class UsbTransport(Transport):
                         self._pending = bytes(chunk[take:])
                 continue
             if header.type != ContainerType.RESPONSE:
-                raise ProtocolError(f"{self.name} sent a {ContainerType(header.type).name} container where a response was due")
+                raise ProtocolError(
+                    f"{self.name} sent a {ContainerType(header.type).name} container where a response was due"
+                )
             rest = self._read_exact(header.payload_bytes, timeout_s)
             resp = parse_container(head + rest)
             return Response(resp.code, resp.params, bytes(data) if data is not None else None, data_bytes)
@@ -311,7 +341,7 @@ class UsbTransport(Transport):
         for ep in (self.ep_in, self.ep_out):
             try:
                 self.dev.clear_halt(ep.bEndpointAddress)
-            except Exception:  # noqa: BLE001 - best effort
+            except Exception:
                 pass
         deadline = time.monotonic() + 2.0
         while time.monotonic() < deadline:
@@ -324,7 +354,7 @@ class UsbTransport(Transport):
         while True:  # drain anything still queued
             try:
                 n = self.dev.read(self.ep_in.bEndpointAddress, self._rx, 20)
-            except Exception:  # noqa: BLE001 - a timeout means drained
+            except Exception:
                 break
             if not n:
                 break
@@ -338,7 +368,7 @@ class UsbTransport(Transport):
 
             usb.util.release_interface(self.dev, self.interface_number)
             usb.util.dispose_resources(self.dev)
-        except Exception:  # noqa: BLE001 - closing a vanished device
+        except Exception:
             pass
 
 

@@ -1,4 +1,5 @@
 """The bench rail: a `Rail` interface, the GRBL-over-serial stage, and `open_rail` choosing a real port or `sim`."""
+
 from __future__ import annotations
 
 from mca.devices.rail.base import (
@@ -16,8 +17,17 @@ from mca.devices.rail.grbl import GrblRail
 SIM = "sim"
 
 __all__ = [
-    "GrblRail", "Rail", "RailAlarm", "RailCommandError", "RailDisconnected", "RailError",
-    "RailProtocolError", "RailStatus", "RailTimeout", "SIM", "open_rail",
+    "SIM",
+    "GrblRail",
+    "Rail",
+    "RailAlarm",
+    "RailCommandError",
+    "RailDisconnected",
+    "RailError",
+    "RailProtocolError",
+    "RailStatus",
+    "RailTimeout",
+    "open_rail",
 ]
 
 

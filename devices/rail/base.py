@@ -1,4 +1,5 @@
 """The bench rail interface: what a calibration sweep may ask of any linear stage, and the errors it raises."""
+
 from __future__ import annotations
 
 import abc
@@ -105,8 +106,9 @@ class Rail(abc.ABC):
     def close(self) -> None:
         """Release the port (idempotent)."""
 
-    def move_to(self, position_mm: float, feed_mm_per_min: float | None = None,
-                timeout_s: float | None = None) -> RailStatus:
+    def move_to(
+        self, position_mm: float, feed_mm_per_min: float | None = None, timeout_s: float | None = None
+    ) -> RailStatus:
         """Move to `position_mm`, wait until idle there, and return the status read back."""
         self.start_move(position_mm, feed_mm_per_min)
         return self.wait_until_idle(target_mm=position_mm, timeout_s=timeout_s or 120.0)
@@ -114,9 +116,10 @@ class Rail(abc.ABC):
     def position_mm(self) -> float:
         return self.status().position_mm
 
-    def __enter__(self) -> "Rail":
+    def __enter__(self) -> Rail:
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
         self.close()

@@ -1,9 +1,10 @@
 """A GRBL 1.1 linear stage over a serial port (pyserial): the real-device side of the `Rail` interface."""
+
 from __future__ import annotations
 
 import collections
 import time
-from typing import Callable
+from collections.abc import Callable
 
 from mca.devices.rail import grbl_protocol as gp
 from mca.devices.rail.base import (
@@ -17,20 +18,25 @@ from mca.devices.rail.base import (
 )
 
 _PORT_HINT = "Check the USB cable and the controller's power, then reconnect (`Rail.reconnect()`)"
-_SILENT_HINT = ("Check that the controller is powered, runs GRBL 1.1 at 115200 baud, and that no other "
-                "program (a G-code sender) holds the port")
-_GARBAGE_HINT = ("Check the baud rate (GRBL uses 115200) and that this port is the GRBL controller, "
-                 "then reconnect")
+_SILENT_HINT = (
+    "Check that the controller is powered, runs GRBL 1.1 at 115200 baud, and that no other "
+    "program (a G-code sender) holds the port"
+)
+_GARBAGE_HINT = "Check the baud rate (GRBL uses 115200) and that this port is the GRBL controller, then reconnect"
 _ERROR_HINTS: dict[int, str] = {
     5: "Enable homing with `$22=1` (see docs/rail.md) or unlock with `$X` and position by hand",
     8: "Wait until the rail is idle, then retry",
-    9: ("The controller is locked (alarm state after a reset or power-up): home it first "
-        "(`mca rail home`, `mca rail move --home`, Rail.home())"),
+    9: (
+        "The controller is locked (alarm state after a reset or power-up): home it first "
+        "(`mca rail home`, `mca rail move --home`, Rail.home())"
+    ),
     15: "Choose a target inside the travel ($130)",
     22: "Give a feed rate (`--feed`)",
 }
-_ALARM_HINT = ("Run `mca rail home` (Rail.home()); for a soft-limit alarm (2) `Rail.unlock()` keeps the "
-               "position. Then resume the sweep")
+_ALARM_HINT = (
+    "Run `mca rail home` (Rail.home()); for a soft-limit alarm (2) `Rail.unlock()` keeps the "
+    "position. Then resume the sweep"
+)
 
 
 class GrblRail(Rail):
@@ -93,13 +99,16 @@ class GrblRail(Rail):
             raise RailCommandError(self.port, f"feed {feed} mm/min is not positive", _ERROR_HINTS[22])
         if not 0.0 <= position_mm <= self.travel_mm:
             raise RailCommandError(
-                self.port, f"target {position_mm:.3f} mm is outside the travel 0..{self.travel_mm:.3f} mm",
-                _ERROR_HINTS[15])
+                self.port,
+                f"target {position_mm:.3f} mm is outside the travel 0..{self.travel_mm:.3f} mm",
+                _ERROR_HINTS[15],
+            )
         target_x = gp.machine_x_mm(position_mm, self.axis)
         self._command(gp.move_command(target_x, feed).decode("ascii").strip(), self.answer_timeout_s)
 
-    def move_to(self, position_mm: float, feed_mm_per_min: float | None = None,
-                timeout_s: float | None = None) -> RailStatus:
+    def move_to(
+        self, position_mm: float, feed_mm_per_min: float | None = None, timeout_s: float | None = None
+    ) -> RailStatus:
         if timeout_s is None:
             feed = min(feed_mm_per_min or self.default_feed_mm_per_min, self.axis.max_rate_mm_per_min)
             timeout_s = 10.0 + 2.0 * 60.0 * self.travel_mm / max(feed, 1e-3)
@@ -111,8 +120,7 @@ class GrblRail(Rail):
         while True:
             status = self.status()
             if status.state == "Alarm":
-                raise RailAlarm(self.port, f"controller in alarm at {status.position_mm:.3f} mm",
-                                _ALARM_HINT, None)
+                raise RailAlarm(self.port, f"controller in alarm at {status.position_mm:.3f} mm", _ALARM_HINT, None)
             at_target = target_mm is None or abs(status.position_mm - target_mm) <= self.position_tolerance_mm
             if status.idle and at_target:
                 return status
@@ -121,7 +129,8 @@ class GrblRail(Rail):
                 raise RailTimeout(
                     self.port,
                     f"still {status.state} at {status.position_mm:.3f} mm after {timeout_s:.1f} s{where}",
-                    "Check for a feed hold or a stalled carriage; resume with `~` or home and retry")
+                    "Check for a feed hold or a stalled carriage; resume with `~` or home and retry",
+                )
             time.sleep(self.poll_interval_s)
 
     def status(self) -> RailStatus:
@@ -156,13 +165,16 @@ class GrblRail(Rail):
         import serial
 
         try:
-            self._serial = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.02,
-                                                 write_timeout=self.answer_timeout_s)
+            self._serial = serial.serial_for_url(
+                self.port, baudrate=self.baudrate, timeout=0.02, write_timeout=self.answer_timeout_s
+            )
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise RailDisconnected(self.port, f"cannot open the port ({exc})",
-                                   "Check that the controller is plugged in and the path is right "
-                                   "(`ls /dev/ttyUSB* /dev/ttyACM*`), and that you may use it (group dialout)"
-                                   ) from exc
+            raise RailDisconnected(
+                self.port,
+                f"cannot open the port ({exc})",
+                "Check that the controller is plugged in and the path is right "
+                "(`ls /dev/ttyUSB* /dev/ttyACM*`), and that you may use it (group dialout)",
+            ) from exc
         self._splitter.clear()
         self._pending.clear()
         # An Arduino resets when the port opens and needs ~1-2 s before it answers;
@@ -173,15 +185,18 @@ class GrblRail(Rail):
             self._soft_reset()
         self.axis = gp.GrblAxisSettings.from_settings(self._read_settings())
         if not self.axis.status_report_mask & 1:
-            raise RailCommandError(self.port, "the controller reports work positions ($10 bit 0 is 0)",
-                                   "Set `$10=1` so status reports carry the machine position (docs/rail.md)")
+            raise RailCommandError(
+                self.port,
+                "the controller reports work positions ($10 bit 0 is 0)",
+                "Set `$10=1` so status reports carry the machine position (docs/rail.md)",
+            )
 
     def _close_port(self) -> None:
         port, self._serial = self._serial, None
         if port is not None:
             try:
                 port.close()
-            except Exception:  # noqa: BLE001 - a vanished port may fail to close; it is gone either way
+            except Exception:
                 pass
 
     def _read_settings(self) -> dict[int, float]:
@@ -225,8 +240,9 @@ class GrblRail(Rail):
                 data = self._serial.read(max(1, self._serial.in_waiting))
             except (serial.SerialException, OSError) as exc:
                 self._close_port()
-                raise RailDisconnected(self.port, f"the port vanished while waiting for {waiting_for} ({exc})",
-                                       _PORT_HINT) from exc
+                raise RailDisconnected(
+                    self.port, f"the port vanished while waiting for {waiting_for} ({exc})", _PORT_HINT
+                ) from exc
             if data:
                 try:
                     for line in self._splitter.feed(data):
@@ -234,8 +250,9 @@ class GrblRail(Rail):
                 except gp.GrblProtocolError as exc:
                     self._splitter.clear()
                     self._pending.clear()
-                    raise RailProtocolError(self.port, f"garbage on the line while waiting for {waiting_for}: {exc}",
-                                            _GARBAGE_HINT) from exc
+                    raise RailProtocolError(
+                        self.port, f"garbage on the line while waiting for {waiting_for}: {exc}", _GARBAGE_HINT
+                    ) from exc
             elif time.monotonic() >= deadline:
                 raise RailTimeout(self.port, f"no answer while waiting for {waiting_for}", _SILENT_HINT)
         return self._pending.popleft()
@@ -251,14 +268,17 @@ class GrblRail(Rail):
                 return collected
             if isinstance(message, gp.ErrorReply):
                 raise RailCommandError(
-                    self.port, f"{line!r} rejected with error:{message.code} ({message.message})",
+                    self.port,
+                    f"{line!r} rejected with error:{message.code} ({message.message})",
                     _ERROR_HINTS.get(message.code, "See docs/rail.md for the GRBL settings expected"),
-                    message.code)
+                    message.code,
+                )
             self._raise_on_alarm(message, line)
             collected.append(message)
 
-    def _query_status(self, timeout_s: float, repeat_s: float | None = None,
-                      first_contact: bool = False) -> gp.StatusReport:
+    def _query_status(
+        self, timeout_s: float, repeat_s: float | None = None, first_contact: bool = False
+    ) -> gp.StatusReport:
         # A report still queued from an earlier, repeated `?` would be stale.
         self._pending = collections.deque(m for m in self._pending if not isinstance(m, gp.StatusReport))
         self._write(gp.STATUS_QUERY)
@@ -272,8 +292,9 @@ class GrblRail(Rail):
             except RailTimeout:
                 if time.monotonic() >= deadline:
                     if first_contact:
-                        raise RailTimeout(self.port, f"no answer from a GRBL controller within {timeout_s:.1f} s",
-                                          _SILENT_HINT) from None
+                        raise RailTimeout(
+                            self.port, f"no answer from a GRBL controller within {timeout_s:.1f} s", _SILENT_HINT
+                        ) from None
                     raise
                 self._write(gp.STATUS_QUERY)
                 last_ask = time.monotonic()
@@ -287,13 +308,19 @@ class GrblRail(Rail):
 
     def _raise_on_alarm(self, message: gp.GrblMessage, during: str) -> None:
         if isinstance(message, gp.AlarmMessage):
-            raise RailAlarm(self.port, f"ALARM:{message.code} ({message.message}) during {during!r}",
-                            _ALARM_HINT, message.code)
+            raise RailAlarm(
+                self.port, f"ALARM:{message.code} ({message.message}) during {during!r}", _ALARM_HINT, message.code
+            )
 
     def _rail_status(self, report: gp.StatusReport) -> RailStatus:
         if report.mpos_mm is None:
-            raise RailCommandError(self.port, "status report carries no machine position (MPos)",
-                                   "Set `$10=1` (docs/rail.md)")
+            raise RailCommandError(
+                self.port, "status report carries no machine position (MPos)", "Set `$10=1` (docs/rail.md)"
+            )
         machine_x = report.mpos_mm[0]
-        return RailStatus(state=report.state, position_mm=gp.rail_mm(machine_x, self.axis) + 0.0,
-                          machine_x_mm=machine_x, feed_mm_per_min=report.feed_mm_per_min or 0.0)
+        return RailStatus(
+            state=report.state,
+            position_mm=gp.rail_mm(machine_x, self.axis) + 0.0,
+            machine_x_mm=machine_x,
+            feed_mm_per_min=report.feed_mm_per_min or 0.0,
+        )

@@ -5,6 +5,7 @@ The host driver (`devices.rail.grbl`) and the simulated controller
 Reference: GRBL 1.1 `doc/markdown/interface.md`, `doc/csv/error_codes_en_US.csv`
 and `doc/csv/alarm_codes_en_US.csv` (gnea/grbl).
 """
+
 from __future__ import annotations
 
 import re
@@ -206,7 +207,7 @@ def parse_line(line: str) -> GrblMessage:
     if line.startswith("<"):
         return parse_status(line)
     if line.startswith(BANNER_PREFIX) and "['$' for help]" in line:
-        return Banner(version=line[len(BANNER_PREFIX):].split(" ", 1)[0])
+        return Banner(version=line[len(BANNER_PREFIX) :].split(" ", 1)[0])
     if line.startswith("[") and line.endswith("]"):
         return Feedback(line[1:-1])
     match = _SETTING_RE.match(line)
@@ -255,8 +256,13 @@ class LineSplitter:
         self._buffer.clear()
 
 
-def format_status(state: str, mpos_mm: tuple[float, float, float], feed_mm_per_min: float,
-                  substate: int | None = None, wco_mm: tuple[float, float, float] | None = None) -> str:
+def format_status(
+    state: str,
+    mpos_mm: tuple[float, float, float],
+    feed_mm_per_min: float,
+    substate: int | None = None,
+    wco_mm: tuple[float, float, float] | None = None,
+) -> str:
     """Build a GRBL 1.1 status report as sent with `$10=1`, e.g. `<Idle|MPos:10.000,0.000,0.000|FS:0,0>`."""
     name = state if substate is None else f"{state}:{substate}"
     text = f"<{name}|MPos:{','.join(f'{v:.3f}' for v in mpos_mm)}|FS:{feed_mm_per_min:.0f},0"
@@ -285,7 +291,7 @@ class GrblAxisSettings:
     max_travel_mm: float = 200.0  # $130
 
     @classmethod
-    def from_settings(cls, settings: dict[int, float]) -> "GrblAxisSettings":
+    def from_settings(cls, settings: dict[int, float]) -> GrblAxisSettings:
         default = cls()
         return cls(
             status_report_mask=int(settings.get(10, default.status_report_mask)),

@@ -1,4 +1,5 @@
 """Fault injection for the simulated EOS 70D: disconnects mid-download, stalls, DeviceBusy, short reads, corrupt containers."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -4,6 +4,7 @@ One initiator at a time: the command connection is greeted with
 InitCommandAck, the event connection with InitEventAck, then operations
 run through `SimEos70D.handle`. Closing the connection ends the session.
 """
+
 from __future__ import annotations
 
 import socket
@@ -47,8 +48,14 @@ MAX_DATA_OUT_BYTES = 16 * 1024 * 1024
 class PtpIpServer:
     """A PTP/IP responder for a `SimEos70D`; bind only to loopback addresses."""
 
-    def __init__(self, camera: SimEos70D | None = None, host: str = "127.0.0.1", port: int = 15740,
-                 *, faults: FaultPlan | None = None) -> None:
+    def __init__(
+        self,
+        camera: SimEos70D | None = None,
+        host: str = "127.0.0.1",
+        port: int = 15740,
+        *,
+        faults: FaultPlan | None = None,
+    ) -> None:
         if host not in ("127.0.0.1", "localhost", "::1"):
             raise ValueError(f"the simulated camera binds only to loopback, not {host!r}")
         self.camera = camera or SimEos70D()
@@ -69,7 +76,7 @@ class PtpIpServer:
     def address(self) -> str:
         return f"{self.host}:{self.port}"
 
-    def start(self) -> "PtpIpServer":
+    def start(self) -> PtpIpServer:
         t = threading.Thread(target=self._accept_loop, name="sim-ptpip-accept", daemon=True)
         t.start()
         self._threads.append(t)
@@ -100,7 +107,7 @@ class PtpIpServer:
         for t in self._threads:
             t.join(max(0.0, deadline - time.monotonic()))
 
-    def __enter__(self) -> "PtpIpServer":
+    def __enter__(self) -> PtpIpServer:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:
@@ -111,7 +118,7 @@ class PtpIpServer:
         while not self._stop.is_set():
             try:
                 sock, _ = self._listener.accept()
-            except socket.timeout:
+            except TimeoutError:
                 continue
             except OSError:
                 return
@@ -142,7 +149,9 @@ class PtpIpServer:
                     self._next_conn += 1
                     ready = threading.Event()
                     self._event_conns[conn_id] = (None, ready)  # type: ignore[assignment]
-                conn.send(pack_init_command_ack(conn_id, self.guid, self.camera.device_info().model.replace("Canon ", "")))
+                conn.send(
+                    pack_init_command_ack(conn_id, self.guid, self.camera.device_info().model.replace("Canon ", ""))
+                )
                 ready.wait(10.0)
                 self._command_loop(conn, conn_id)
             elif kind == INIT_EVENT_REQUEST:
@@ -256,9 +265,13 @@ class PtpIpServer:
             if len(data) == 0:
                 conn.send(pack_data_packet(cmd.transaction_id, b"", end=True))
             for start in range(0, len(data), DATA_CHUNK_BYTES):
-                piece = data[start:start + DATA_CHUNK_BYTES]
+                piece = data[start : start + DATA_CHUNK_BYTES]
                 if cut_after is not None and start + len(piece) > cut_after:
-                    conn.send(pack_data_packet(cmd.transaction_id, piece[: max(0, cut_after - start)], end=False)[:max(0, 12 + cut_after - start)])
+                    conn.send(
+                        pack_data_packet(cmd.transaction_id, piece[: max(0, cut_after - start)], end=False)[
+                            : max(0, 12 + cut_after - start)
+                        ]
+                    )
                     return False
                 conn.send(pack_data_packet(cmd.transaction_id, piece, end=start + DATA_CHUNK_BYTES >= len(data)))
         resp = pack_operation_response(reply.response.code, reply.response.transaction_id, reply.response.params)

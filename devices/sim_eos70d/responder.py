@@ -4,6 +4,7 @@ Transport-agnostic: `handle(command, data_out)` takes a parsed command
 container (and the data-out payload) and returns the data-in payload and the
 response, using the same codec as the host side.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -24,8 +25,14 @@ from mca.devices.ptp.codes import (
     Op,
     Resp,
 )
-from mca.devices.ptp.datasets import DeviceInfo, ObjectInfo, StorageInfo, pack_device_info, pack_object_info, pack_storage_info
-from mca.devices.ptp.properties import EOS_SHUTTER
+from mca.devices.ptp.datasets import (
+    DeviceInfo,
+    ObjectInfo,
+    StorageInfo,
+    pack_device_info,
+    pack_object_info,
+    pack_storage_info,
+)
 from mca.devices.ptp.events import (
     EosAvailListChanged,
     EosCameraStatus,
@@ -37,6 +44,7 @@ from mca.devices.ptp.events import (
     pack_eos_events,
     pack_image_format,
 )
+from mca.devices.ptp.properties import EOS_SHUTTER
 
 #: A frame source gives the bytes of shot number `index` (1-based), or `(file name, bytes)`.
 FrameSource = Callable[[int], "bytes | tuple[str, bytes]"]
@@ -45,16 +53,36 @@ CARD_STORAGE_ID = 0x00020001
 DCIM_HANDLE = 0x90000001
 FOLDER_HANDLE = 0x90000002
 FIRST_FILE_HANDLE = 0x91000001
-CARD_CAPACITY_BYTES = 16 * 1024 ** 3
+CARD_CAPACITY_BYTES = 16 * 1024**3
 
 ISO_VALUES = (0x00, 0x48, 0x4B, 0x4D, 0x50, 0x53, 0x55, 0x58, 0x5B, 0x5D, 0x60, 0x63, 0x65, 0x68, 0x70, 0x78, 0x80)
 SHUTTER_VALUES = tuple(k for k in EOS_SHUTTER if k >= 0x10)
-APERTURE_VALUES = (0x20, 0x23, 0x25, 0x28, 0x2B, 0x2D, 0x30, 0x33, 0x35, 0x38, 0x3B, 0x3D, 0x40, 0x43, 0x45, 0x48, 0x4B, 0x4D, 0x50)
+APERTURE_VALUES = (
+    0x20,
+    0x23,
+    0x25,
+    0x28,
+    0x2B,
+    0x2D,
+    0x30,
+    0x33,
+    0x35,
+    0x38,
+    0x3B,
+    0x3D,
+    0x40,
+    0x43,
+    0x45,
+    0x48,
+    0x4B,
+    0x4D,
+    0x50,
+)
 IMAGE_FORMATS = (
-    ((6, 0, 4),),              # RAW
-    ((1, 0, 3),),              # Large Fine JPEG
-    ((1, 0, 2),),              # Large Normal JPEG
-    ((6, 0, 4), (1, 0, 3)),    # RAW + Large Fine JPEG
+    ((6, 0, 4),),  # RAW
+    ((1, 0, 3),),  # Large Fine JPEG
+    ((1, 0, 2),),  # Large Normal JPEG
+    ((6, 0, 4), (1, 0, 3)),  # RAW + Large Fine JPEG
 )
 
 
@@ -83,10 +111,17 @@ class SimObject:
     def info(self) -> ObjectInfo:
         is_folder = self.object_format == ObjectFormat.ASSOCIATION
         return ObjectInfo(
-            storage_id=self.storage_id, object_format=self.object_format, compressed_size_bytes=len(self.data),
-            image_width_px=0 if is_folder else 5472, image_height_px=0 if is_folder else 3648,
-            image_bit_depth=0 if is_folder else 14, parent_object=self.parent, association_type=1 if is_folder else 0,
-            filename=self.filename, capture_date=self.capture_date, modification_date=self.capture_date,
+            storage_id=self.storage_id,
+            object_format=self.object_format,
+            compressed_size_bytes=len(self.data),
+            image_width_px=0 if is_folder else 5472,
+            image_height_px=0 if is_folder else 3648,
+            image_bit_depth=0 if is_folder else 14,
+            parent_object=self.parent,
+            association_type=1 if is_folder else 0,
+            filename=self.filename,
+            capture_date=self.capture_date,
+            modification_date=self.capture_date,
         )
 
 
@@ -130,8 +165,11 @@ class SimEos70D:
         }
         self.ram: dict[int, SimObject] = {}
         self.props: dict[int, int] = {
-            EosProp.APERTURE: 0x30, EosProp.SHUTTER_SPEED: 0x60, EosProp.ISO_SPEED: 0x48,
-            EosProp.FOCUS_MODE: 3, EosProp.CAPTURE_DESTINATION: CAPTURE_DESTINATION_CARD,
+            EosProp.APERTURE: 0x30,
+            EosProp.SHUTTER_SPEED: 0x60,
+            EosProp.ISO_SPEED: 0x48,
+            EosProp.FOCUS_MODE: 3,
+            EosProp.CAPTURE_DESTINATION: CAPTURE_DESTINATION_CARD,
             EosProp.AVAILABLE_SHOTS: 999,
         }
         self.image_format_index = 0
@@ -144,15 +182,37 @@ class SimEos70D:
 
     # -- description -----------------------------------------------------
     def device_info(self) -> DeviceInfo:
-        ops = [Op.GET_DEVICE_INFO, Op.OPEN_SESSION, Op.CLOSE_SESSION, Op.GET_STORAGE_IDS, Op.GET_STORAGE_INFO,
-               Op.GET_NUM_OBJECTS, Op.GET_OBJECT_HANDLES, Op.GET_OBJECT_INFO, Op.GET_OBJECT, Op.DELETE_OBJECT,
-               Op.GET_PARTIAL_OBJECT]
+        ops = [
+            Op.GET_DEVICE_INFO,
+            Op.OPEN_SESSION,
+            Op.CLOSE_SESSION,
+            Op.GET_STORAGE_IDS,
+            Op.GET_STORAGE_INFO,
+            Op.GET_NUM_OBJECTS,
+            Op.GET_OBJECT_HANDLES,
+            Op.GET_OBJECT_INFO,
+            Op.GET_OBJECT,
+            Op.DELETE_OBJECT,
+            Op.GET_PARTIAL_OBJECT,
+        ]
         if self.eos:
-            ops += [Op.EOS_GET_OBJECT, Op.EOS_GET_PARTIAL_OBJECT, Op.EOS_REMOTE_RELEASE,
-                    Op.EOS_SET_DEVICE_PROP_VALUE_EX, Op.EOS_SET_REMOTE_MODE, Op.EOS_SET_EVENT_MODE, Op.EOS_GET_EVENT,
-                    Op.EOS_TRANSFER_COMPLETE, Op.EOS_PC_HDD_CAPACITY, Op.EOS_SET_UI_LOCK, Op.EOS_RESET_UI_LOCK,
-                    Op.EOS_KEEP_DEVICE_ON, Op.EOS_REQUEST_DEVICE_PROP_VALUE, Op.EOS_REMOTE_RELEASE_ON,
-                    Op.EOS_REMOTE_RELEASE_OFF]
+            ops += [
+                Op.EOS_GET_OBJECT,
+                Op.EOS_GET_PARTIAL_OBJECT,
+                Op.EOS_REMOTE_RELEASE,
+                Op.EOS_SET_DEVICE_PROP_VALUE_EX,
+                Op.EOS_SET_REMOTE_MODE,
+                Op.EOS_SET_EVENT_MODE,
+                Op.EOS_GET_EVENT,
+                Op.EOS_TRANSFER_COMPLETE,
+                Op.EOS_PC_HDD_CAPACITY,
+                Op.EOS_SET_UI_LOCK,
+                Op.EOS_RESET_UI_LOCK,
+                Op.EOS_KEEP_DEVICE_ON,
+                Op.EOS_REQUEST_DEVICE_PROP_VALUE,
+                Op.EOS_REMOTE_RELEASE_ON,
+                Op.EOS_REMOTE_RELEASE_OFF,
+            ]
         else:
             ops += [Op.INITIATE_CAPTURE]
         return DeviceInfo(
@@ -173,10 +233,16 @@ class SimEos70D:
 
     def storage_info(self) -> StorageInfo:
         used = sum(len(o.data) for o in self.card.values())
-        return StorageInfo(storage_type=4, filesystem_type=2, access_capability=0,
-                           max_capacity_bytes=CARD_CAPACITY_BYTES, free_space_bytes=CARD_CAPACITY_BYTES - used,
-                           free_space_images=max(0, (CARD_CAPACITY_BYTES - used) // (25 * 1024 * 1024)),
-                           description="SD", volume_label="EOS_DIGITAL")
+        return StorageInfo(
+            storage_type=4,
+            filesystem_type=2,
+            access_capability=0,
+            max_capacity_bytes=CARD_CAPACITY_BYTES,
+            free_space_bytes=CARD_CAPACITY_BYTES - used,
+            free_space_images=max(0, (CARD_CAPACITY_BYTES - used) // (25 * 1024 * 1024)),
+            description="SD",
+            volume_label="EOS_DIGITAL",
+        )
 
     # -- state changes usable by tests and the app -----------------------
     @staticmethod
@@ -208,16 +274,27 @@ class SimEos70D:
 
     def all_props_events(self) -> list[EosEvent]:
         out: list[EosEvent] = []
-        allowed = {EosProp.ISO_SPEED: ISO_VALUES, EosProp.SHUTTER_SPEED: SHUTTER_VALUES,
-                   EosProp.APERTURE: APERTURE_VALUES,
-                   EosProp.CAPTURE_DESTINATION: (CAPTURE_DESTINATION_CARD, CAPTURE_DESTINATION_RAM)}
+        allowed = {
+            EosProp.ISO_SPEED: ISO_VALUES,
+            EosProp.SHUTTER_SPEED: SHUTTER_VALUES,
+            EosProp.APERTURE: APERTURE_VALUES,
+            EosProp.CAPTURE_DESTINATION: (CAPTURE_DESTINATION_CARD, CAPTURE_DESTINATION_RAM),
+        }
         for prop, value in self.props.items():
             out.append(EosPropValueChanged(int(prop), value))
-        out.append(EosPropValueChanged(int(EosProp.IMAGE_FORMAT), 0, pack_image_format(IMAGE_FORMATS[self.image_format_index])))
+        out.append(
+            EosPropValueChanged(int(EosProp.IMAGE_FORMAT), 0, pack_image_format(IMAGE_FORMATS[self.image_format_index]))
+        )
         for prop, values in allowed.items():
             out.append(EosAvailListChanged(int(prop), 3, tuple(values)))
-        out.append(EosAvailListChanged(int(EosProp.IMAGE_FORMAT), 3, tuple(range(len(IMAGE_FORMATS))),
-                                       tuple(pack_image_format(f) for f in IMAGE_FORMATS)))
+        out.append(
+            EosAvailListChanged(
+                int(EosProp.IMAGE_FORMAT),
+                3,
+                tuple(range(len(IMAGE_FORMATS))),
+                tuple(pack_image_format(f) for f in IMAGE_FORMATS),
+            )
+        )
         return out
 
     # -- internals -------------------------------------------------------
@@ -251,8 +328,10 @@ class SimEos70D:
             self._queue(event, self.shot_delay_s)
             self._queue(EosCameraStatus(False), self.shot_delay_s)
         else:
-            for ev in (Container(ContainerType.EVENT, Event.OBJECT_ADDED, 0, (handle,)),
-                       Container(ContainerType.EVENT, Event.CAPTURE_COMPLETE, 0, ())):
+            for ev in (
+                Container(ContainerType.EVENT, Event.OBJECT_ADDED, 0, (handle,)),
+                Container(ContainerType.EVENT, Event.CAPTURE_COMPLETE, 0, ()),
+            ):
                 self._std_events.append(ev)
                 for listener in self.std_event_listeners:
                     listener(ev)
@@ -311,9 +390,12 @@ class SimEos70D:
                 parent = p[2] if len(p) > 2 else 0
                 if storage not in (0xFFFFFFFF, CARD_STORAGE_ID):
                     return fail(Resp.INVALID_STORAGE_ID)
-                handles = [h for h, o in self.card.items()
-                           if (not fmt or o.object_format == fmt)
-                           and (parent == 0 or (parent == 0xFFFFFFFF and o.parent == 0) or o.parent == parent)]
+                handles = [
+                    h
+                    for h, o in self.card.items()
+                    if (not fmt or o.object_format == fmt)
+                    and (parent == 0 or (parent == 0xFFFFFFFF and o.parent == 0) or o.parent == parent)
+                ]
                 if code == Op.GET_NUM_OBJECTS:
                     return ok(len(handles))
                 return ok(data=pack_array("I", handles))
@@ -334,7 +416,7 @@ class SimEos70D:
                     return fail(Resp.INVALID_PARAMETER)
                 if self.short_partial_bytes:
                     want = min(want, self.short_partial_bytes)
-                piece = memoryview(obj.data)[offset:offset + want]
+                piece = memoryview(obj.data)[offset : offset + want]
                 return ok(len(piece), data=piece)
             if code == Op.DELETE_OBJECT:
                 obj = self.card.pop(p[0], None) if p else None
@@ -369,8 +451,14 @@ class SimEos70D:
             ready = [e for t, e in self._events if t <= now]
             self._events = [(t, e) for t, e in self._events if t > now]
             return ok(data=pack_eos_events(ready))
-        if code in (Op.EOS_KEEP_DEVICE_ON, Op.EOS_SET_UI_LOCK, Op.EOS_RESET_UI_LOCK, Op.EOS_PC_HDD_CAPACITY,
-                    Op.EOS_REQUEST_DEVICE_PROP_VALUE, Op.EOS_REMOTE_RELEASE_OFF):
+        if code in (
+            Op.EOS_KEEP_DEVICE_ON,
+            Op.EOS_SET_UI_LOCK,
+            Op.EOS_RESET_UI_LOCK,
+            Op.EOS_PC_HDD_CAPACITY,
+            Op.EOS_REQUEST_DEVICE_PROP_VALUE,
+            Op.EOS_REMOTE_RELEASE_OFF,
+        ):
             return ok()
         if code == Op.EOS_TRANSFER_COMPLETE:
             if not p or self.ram.pop(p[0], None) is None:
@@ -379,8 +467,10 @@ class SimEos70D:
         if code in (Op.EOS_REMOTE_RELEASE, Op.EOS_REMOTE_RELEASE_ON):
             if code == Op.EOS_REMOTE_RELEASE_ON and (not p or p[0] != 2):
                 return ok()  # half press: focus only
-            if (self.props[EosProp.CAPTURE_DESTINATION] == CAPTURE_DESTINATION_RAM
-                    and len(self.ram) >= self.ram_buffer_slots):
+            if (
+                self.props[EosProp.CAPTURE_DESTINATION] == CAPTURE_DESTINATION_RAM
+                and len(self.ram) >= self.ram_buffer_slots
+            ):
                 return fail(Resp.DEVICE_BUSY)
             self._shoot()
             return ok(0) if code == Op.EOS_REMOTE_RELEASE else ok()
@@ -399,9 +489,12 @@ class SimEos70D:
                 self._queue(EosPropValueChanged(prop, 0, raw))
                 return ok()
             (value,) = struct.unpack_from("<I", data_out, 8)
-            valid = {EosProp.ISO_SPEED: ISO_VALUES, EosProp.SHUTTER_SPEED: SHUTTER_VALUES,
-                     EosProp.APERTURE: APERTURE_VALUES,
-                     EosProp.CAPTURE_DESTINATION: (CAPTURE_DESTINATION_CARD, CAPTURE_DESTINATION_RAM)}
+            valid = {
+                EosProp.ISO_SPEED: ISO_VALUES,
+                EosProp.SHUTTER_SPEED: SHUTTER_VALUES,
+                EosProp.APERTURE: APERTURE_VALUES,
+                EosProp.CAPTURE_DESTINATION: (CAPTURE_DESTINATION_CARD, CAPTURE_DESTINATION_RAM),
+            }
             if prop not in valid:
                 return fail(Resp.DEVICE_PROP_NOT_SUPPORTED)
             if value not in valid[prop]:

@@ -6,6 +6,7 @@ serves the data and response containers as bulk-in transfers (ending each
 with a zero-length packet when it fills whole packets). Optional pacing
 emulates a USB 2.0 link; `FaultPlan` injects failures.
 """
+
 from __future__ import annotations
 
 import errno
@@ -19,7 +20,14 @@ from typing import Any
 import usb.backend
 import usb.core
 
-from mca.devices.ptp.codec import HEADER_BYTES, ProtocolError, pack_data_header, pack_response, parse_container, parse_header
+from mca.devices.ptp.codec import (
+    HEADER_BYTES,
+    ProtocolError,
+    pack_data_header,
+    pack_response,
+    parse_container,
+    parse_header,
+)
 from mca.devices.ptp.codes import CANON_VENDOR_ID, EOS_70D_PRODUCT_ID, ContainerType, Resp
 from mca.devices.sim_eos70d.faults import DOWNLOAD_OPS, FaultPlan, corrupt_container
 from mca.devices.sim_eos70d.responder import SimEos70D
@@ -59,8 +67,15 @@ class _Handle:
 class SimUsbBackend(usb.backend.IBackend):
     """The simulated camera on a simulated bus."""
 
-    def __init__(self, camera: SimEos70D | None = None, *, faults: FaultPlan | None = None,
-                 pace_bytes_per_s: float | None = None, bus: int = 1, address: int = 4) -> None:
+    def __init__(
+        self,
+        camera: SimEos70D | None = None,
+        *,
+        faults: FaultPlan | None = None,
+        pace_bytes_per_s: float | None = None,
+        bus: int = 1,
+        address: int = 4,
+    ) -> None:
         super().__init__()
         self.camera = camera or SimEos70D()
         self.faults = faults or FaultPlan()
@@ -113,30 +128,72 @@ class SimUsbBackend(usb.backend.IBackend):
         return None
 
     def get_device_descriptor(self, dev):
-        return _Desc(bLength=18, bDescriptorType=1, bcdUSB=0x0200, bDeviceClass=0, bDeviceSubClass=0,
-                     bDeviceProtocol=0, bMaxPacketSize0=64, idVendor=CANON_VENDOR_ID, idProduct=EOS_70D_PRODUCT_ID,
-                     bcdDevice=0x0002, iManufacturer=1, iProduct=2, iSerialNumber=3, bNumConfigurations=1,
-                     address=dev.address, bus=dev.bus, port_number=1, port_numbers=(1,), speed=3)
+        return _Desc(
+            bLength=18,
+            bDescriptorType=1,
+            bcdUSB=0x0200,
+            bDeviceClass=0,
+            bDeviceSubClass=0,
+            bDeviceProtocol=0,
+            bMaxPacketSize0=64,
+            idVendor=CANON_VENDOR_ID,
+            idProduct=EOS_70D_PRODUCT_ID,
+            bcdDevice=0x0002,
+            iManufacturer=1,
+            iProduct=2,
+            iSerialNumber=3,
+            bNumConfigurations=1,
+            address=dev.address,
+            bus=dev.bus,
+            port_number=1,
+            port_numbers=(1,),
+            speed=3,
+        )
 
     def get_configuration_descriptor(self, dev, config):
         if config != 0:
             raise IndexError("the EOS 70D has one configuration")
-        return _Desc(bLength=9, bDescriptorType=2, wTotalLength=39, bNumInterfaces=1, bConfigurationValue=1,
-                     iConfiguration=0, bmAttributes=0xC0, bMaxPower=1)
+        return _Desc(
+            bLength=9,
+            bDescriptorType=2,
+            wTotalLength=39,
+            bNumInterfaces=1,
+            bConfigurationValue=1,
+            iConfiguration=0,
+            bmAttributes=0xC0,
+            bMaxPower=1,
+        )
 
     def get_interface_descriptor(self, dev, intf, alt, config):
         if config != 0 or intf != 0 or alt != 0:
             raise IndexError("no such interface or alternate setting")
-        return _Desc(bLength=9, bDescriptorType=4, bInterfaceNumber=0, bAlternateSetting=0, bNumEndpoints=3,
-                     bInterfaceClass=6, bInterfaceSubClass=1, bInterfaceProtocol=1, iInterface=0)
+        return _Desc(
+            bLength=9,
+            bDescriptorType=4,
+            bInterfaceNumber=0,
+            bAlternateSetting=0,
+            bNumEndpoints=3,
+            bInterfaceClass=6,
+            bInterfaceSubClass=1,
+            bInterfaceProtocol=1,
+            iInterface=0,
+        )
 
     def get_endpoint_descriptor(self, dev, ep, intf, alt, config):
         table = [(EP_BULK_IN, 2, MAX_PACKET_BYTES, 0), (EP_BULK_OUT, 2, MAX_PACKET_BYTES, 0), (EP_INTR_IN, 3, 64, 8)]
         if config != 0 or intf != 0 or alt != 0 or not 0 <= ep < len(table):
             raise IndexError("no such endpoint")
         address, attributes, size, interval = table[ep]
-        return _Desc(bLength=7, bDescriptorType=5, bEndpointAddress=address, bmAttributes=attributes,
-                     wMaxPacketSize=size, bInterval=interval, bRefresh=0, bSynchAddress=0)
+        return _Desc(
+            bLength=7,
+            bDescriptorType=5,
+            bEndpointAddress=address,
+            bmAttributes=attributes,
+            wMaxPacketSize=size,
+            bInterval=interval,
+            bRefresh=0,
+            bSynchAddress=0,
+        )
 
     # -- device handle ---------------------------------------------------
     def open_device(self, dev):
@@ -203,8 +260,8 @@ class SimUsbBackend(usb.backend.IBackend):
                 return
             if len(self._out) < header.length:
                 return
-            raw = bytes(self._out[:header.length])
-            del self._out[:header.length]
+            raw = bytes(self._out[: header.length])
+            del self._out[: header.length]
             container = parse_container(raw)
             if container.type == ContainerType.COMMAND:
                 if self.camera.expects_data_out(container.code):
@@ -280,7 +337,7 @@ class SimUsbBackend(usb.backend.IBackend):
                 pos -= len(seg)
                 continue
             take = min(len(seg) - pos, want - written)
-            out[written:written + take] = seg[pos:pos + take]
+            out[written : written + take] = seg[pos : pos + take]
             written += take
             pos = 0
             if written == want:
@@ -309,10 +366,10 @@ class SimUsbBackend(usb.backend.IBackend):
                 if events:
                     ev = events[0]
                     with self.camera.lock:
-                        self.camera._std_events[:0] = events[1:]  # noqa: SLF001 - put back the rest
+                        self.camera._std_events[:0] = events[1:]
                     raw = pack_event_raw(ev)
                     out = memoryview(buff).cast("B")
-                    out[:len(raw)] = raw
+                    out[: len(raw)] = raw
                     return len(raw)
             if time.monotonic() >= deadline:
                 raise usb.core.USBTimeoutError("Operation timed out", -7, errno.ETIMEDOUT)
