@@ -6,8 +6,8 @@ import io
 
 import pytest
 
-from mca.devices.ptp.camera import Camera, DeviceBusyError
-from mca.devices.ptp.codes import Op
+from mca.devices.ptp.camera import Camera, ReleaseRefused
+from mca.devices.ptp.codes import Op, Resp
 from mca.devices.ptp.transport_ptpip import PtpIpTransport
 from mca.devices.ptp.transport_usb import UsbTransport, find_cameras
 from mca.devices.sim_eos70d.faults import FaultPlan
@@ -50,8 +50,9 @@ def test_ram_capture_fills_the_buffer_until_downloaded() -> None:
         cam.set_property("capturetarget", "ram")
         obj = cam.capture(timeout_s=5)
         assert obj.in_ram
-        with pytest.raises(DeviceBusyError):
+        with pytest.raises(ReleaseRefused) as refused:
             cam.capture(timeout_s=1)
+        assert refused.value.code == Resp.DEVICE_BUSY and backend.camera.exposures == 1
         buf = io.BytesIO()
         cam.download(obj.handle, obj.size_bytes, buf)
         cam.transfer_complete(obj.handle)
