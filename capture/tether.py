@@ -144,6 +144,10 @@ def make_sim_rig(
     from mca.devices.sim_eos70d.usb_backend import SimUsbBackend
 
     chosen = named_scenario(scenario or "none")
+    if live_view_source is None:
+        from mca.capture.live import scene_live_view_source
+
+        live_view_source = scene_live_view_source()  # rendered on the first live-view frame asked for
     sim = SimEos70D(
         frame_source or default_sim_frame_source(), behaviour=chosen.behaviour, live_view_source=live_view_source
     )

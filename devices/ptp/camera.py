@@ -403,8 +403,11 @@ class Camera:
             return resp
 
     def _mark_events_lost(self, op: int) -> None:
+        """A GetEvent reply went missing: object events may be gone, and the status word is unknown again
+        (libgphoto2 starts from "unknown" too); the card is compared with the snapshot instead."""
         if op == Op.EOS_GET_EVENT:
             self._events_lost = True
+            self.camera_status = -1
 
     def _recover(self, tid: int) -> None:
         try:

@@ -143,6 +143,7 @@ class SimObject:
     filename: str
     data: bytes = field(repr=False, default=b"")
     capture_date: str = ""
+    written: bool = True  # False while a shot in camera RAM is still being processed
 
     def info(self) -> ObjectInfo:
         is_folder = self.object_format == ObjectFormat.ASSOCIATION
@@ -499,7 +500,7 @@ class SimEos70D:
         self._next_handle += len(files)
         to_ram = self.value(EosProp.CAPTURE_DESTINATION) == CAPTURE_DESTINATION_RAM
         if to_ram:  # reserve the buffer slot now; the camera reports busy on the next release if it is full
-            self.ram[handle] = SimObject(handle, 0, 0, ObjectFormat.CANON_CR2, f"IMG_{index:04d}.CR2")
+            self.ram[handle] = SimObject(handle, 0, 0, ObjectFormat.CANON_CR2, f"IMG_{index:04d}.CR2", written=False)
         if self.eos:
             self._queue([EosCameraStatus(1)])
         self._busy_until = time.monotonic() + self.behaviour.busy_after_shot_s
@@ -536,8 +537,9 @@ class SimEos70D:
                     events.append(EosObjectAdded(h, CARD_STORAGE_ID, fmt, len(fdata), FOLDER_HANDLE, fname))
             if not to_ram:
                 self.values[EosProp.AVAILABLE_SHOTS] = _u32(max(0, self.value(EosProp.AVAILABLE_SHOTS) - 1))
-            if self.eos:
-                self._queue(events + [self._value_event(EosProp.AVAILABLE_SHOTS), EosCameraStatus(0)])
+            if self.eos:  # the status turns back to ready when the card write (busy_after_shot_s) is over
+                self._queue(events + [self._value_event(EosProp.AVAILABLE_SHOTS)])
+                self._queue([EosCameraStatus(0)], max(0.0, self._busy_until - time.monotonic()))
                 return
             for h in range(handle, handle + len(made)):
                 for ev in (Container(ContainerType.EVENT, Event.OBJECT_ADDED, 0, (h,)),):
@@ -560,7 +562,7 @@ class SimEos70D:
 
     def _object(self, handle: int) -> SimObject | None:
         obj = self.card.get(handle) or self.ram.get(handle)
-        return obj if obj is not None and (obj.data or obj.object_format == ObjectFormat.ASSOCIATION) else None
+        return obj if obj is not None and obj.written else None
 
     def _initial_dump(self) -> None:
         """The settings after SetEventMode(1): values then lists, spread over `settings_polls` batches."""
