@@ -203,7 +203,7 @@ def pack_eos_event(event: EosEvent) -> bytes:
             + _name_field(event.filename)
         )
         code = EosEventCode.OBJECT_INFO_CHANGED_EX if event.changed else EosEventCode.OBJECT_ADDED_EX
-        return _record(code, _pad4(body))
+        return _record(code, _pad4(body) + u32(0))  # a u32 follows the name (the 400D record is 0x3C bytes)
     if isinstance(event, EosRequestObjectTransfer):
         body = struct.pack("<IIIII", event.handle, event.object_format, 0, event.size_bytes, 0) + _name_field(
             event.filename

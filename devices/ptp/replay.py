@@ -314,9 +314,9 @@ def printed_events(lines: list[str], start: int, end: int) -> list[PrintedEvent]
         idx, rest = int(m.group(1)), m.group(2)
         if idx in records and records[idx]["line"] < n + 1 - 2000:
             continue
-        info = re.match(r"EOS prop ([0-9a-f]{4})( \([^)]*\))? info record, datasize is (\d+)", rest)
-        desc = re.match(r"EOS prop ([0-9a-f]{4})( \([^)]*\))? desc record, datasize (\d+), propxtype (\d+)", rest)
-        unknown = re.match(r"unknown EOS event ([0-9a-f]{4})", rest)
+        info = re.match(r"EOS prop ([0-9a-f]{4})( \(.*?\))? info record, datasize is (\d+)", rest)
+        desc = re.match(r"EOS prop ([0-9a-f]{4})( \(.*?\))? desc record, datasize (\d+), propxtype (\d+)", rest)
+        unknown = re.match(r"unknown EOS event ([0-9a-f]{4})", rest) or re.match(r"unhandled EOS event (\w+) \(size", rest)
         if info or desc or unknown:
             if idx in records:  # a new poll restarted the numbering
                 break
@@ -332,8 +332,9 @@ def printed_events(lines: list[str], start: int, end: int) -> list[PrintedEvent]
                     propxtype=int(desc.group(4)),
                     suppvals=[],
                 )
-            else:
-                records[idx] = dict(line=n + 1, index=idx, kind="unknown", prop=int(unknown.group(1), 16))
+            else:  # "unknown EOS event c1f6" gives the code; "unhandled EOS event PowerZoomInfoChanged" a name (-1)
+                code = int(unknown.group(1), 16) if re.fullmatch(r"[0-9a-f]{4}", unknown.group(1)) else -1
+                records[idx] = dict(line=n + 1, index=idx, kind="unknown", prop=code)
             order.append(idx)
             continue
         if idx not in records:
