@@ -115,3 +115,96 @@ def test_ptpip_capture_and_download() -> None:
 def test_ptpip_server_refuses_non_loopback_addresses() -> None:
     with pytest.raises(ValueError):
         PtpIpServer(host="0.0.0.0", port=0)
+
+
+# -- the 70D's other answers ---------------------------------------------------------------------------------------
+
+
+def test_the_eos_folder_listing_and_standard_property_descriptions() -> None:
+    from mca.devices.ptp.datasets import parse_eos_folder_entries, parse_prop_desc
+    from mca.devices.sim_eos70d.responder import SimBehaviour
+
+    backend = SimUsbBackend(SimEos70D(behaviour=SimBehaviour(files_on_card=4)))
+    with _open(backend) as cam:
+        root = parse_eos_folder_entries(cam._data(Op.EOS_GET_OBJECT_INFO_EX, (0x20001, 0xFFFFFFFF, 0x100000)))
+        assert [e.filename for e in root] == ["DCIM"]
+        dcim = parse_eos_folder_entries(cam._data(Op.EOS_GET_OBJECT_INFO_EX, (0x20001, root[0].handle, 0x100000)))
+        assert sorted(e.filename for e in dcim) == ["100CANON", "101CANON"]
+        files = [info.filename for _h, info in cam.files()]
+        assert len(files) == 4 and all(f.endswith(".JPG") for f in files)
+        battery = cam.prop_desc(0x5001)
+        assert (battery.current, battery.allowed) == (75, (100, 75, 50, 25, 0))
+        assert cam.prop_desc(0xD402).current == "Canon EOS 70D"
+
+
+def test_live_view_frames_come_only_while_the_output_goes_to_the_computer() -> None:
+    from mca.devices.ptp.codes import Resp as R
+
+    backend = SimUsbBackend(SimEos70D(live_view_source=lambda i: b"\xff\xd8frame%d" % i))
+    with _open(backend) as cam:
+        resp = cam._call(Op.EOS_GET_VIEWFINDER_DATA, (0x00200000, 0, 0), check=False)
+        assert resp.code == R.CANON_OBJECT_NOT_READY  # live view is off
+        cam.start_live_view()
+        assert backend.camera.value(0xD1B0) == 2
+        assert cam.live_view_frame() == b"\xff\xd8frame1" and cam.live_view_frame() == b"\xff\xd8frame2"
+        cam.stop_live_view()
+        assert backend.camera.value(0xD1B0) == 0
+
+
+# -- 13.9: the PTP/IP server holds up against many and hostile initiators -------------------------------------------
+
+
+def test_a_header_claiming_a_huge_packet_allocates_nothing_until_the_bytes_arrive() -> None:
+    import socket
+    import struct
+    import tracemalloc
+
+    with PtpIpServer(port=0) as server:
+        tracemalloc.start()
+        try:
+            clients = []
+            for _ in range(8):
+                s = socket.create_connection(("127.0.0.1", server.port))
+                s.sendall(struct.pack("<II", 8 + 60 * 1024 * 1024, 1))  # InitCommandRequest "of 60 MiB"
+                s.sendall(b"x" * 1000)
+                clients.append(s)
+            import time
+
+            time.sleep(0.5)
+            _current, peak = tracemalloc.get_traced_memory()
+        finally:
+            tracemalloc.stop()
+            for s in clients:
+                s.close()
+    assert peak < 8 * 1024 * 1024  # the old server allocated 64 MiB per connection up front
+
+
+def test_the_server_caps_its_connections() -> None:
+    import socket
+    import time
+
+    with PtpIpServer(port=0, max_connections=4) as server:
+        clients = [socket.create_connection(("127.0.0.1", server.port)) for _ in range(30)]
+        time.sleep(0.5)
+        held = server.open_connections
+        for s in clients:
+            s.close()
+    assert held <= 4 and server.refused >= 26
+
+
+def test_a_second_initiator_cannot_end_the_first_ones_session() -> None:
+    from mca.devices.ptp.transport import TransportError
+
+    with PtpIpServer(port=0) as server:
+        first = Camera.open(PtpIpTransport("127.0.0.1", server.port, timeout_s=2))
+        try:
+            with pytest.raises(TransportError, match="busy"):
+                PtpIpTransport("127.0.0.1", server.port, timeout_s=2)
+            obj = first.capture(timeout_s=5)  # the first session goes on
+            buf = io.BytesIO()
+            first.download(obj.handle, obj.size_bytes, buf)
+        finally:
+            first.close()
+        second = Camera.open(PtpIpTransport("127.0.0.1", server.port, timeout_s=2))  # free again once it left
+        second.close()
+    assert buf.getvalue() == deterministic_frame(1)

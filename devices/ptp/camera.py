@@ -272,16 +272,19 @@ class Camera:
         if self.info.supports(Op.EOS_SET_REQUEST_OLC_INFO_GROUP):
             self._call(Op.EOS_SET_REQUEST_OLC_INFO_GROUP, (OLC_INFO_ALL,), check=False)
         self.drain_events()
+        requested = []
         if self.info.supports(Op.EOS_REQUEST_DEVICE_PROP_VALUE):
             for prop in REQUESTED_PROPS:  # a body without one answers GeneralError: log, go on
                 resp = self._call(Op.EOS_REQUEST_DEVICE_PROP_VALUE, (prop,), check=False)
-                if resp.code != Resp.OK:
+                if resp.code == Resp.OK:
+                    requested.append(prop)
+                else:
                     self.anomalies.append(
                         f"RequestDevicePropValue(0x{prop:04X}) answered {name_of(Resp, resp.code)}"
                     )
         if self.info.supports(Op.EOS_GET_DEVICE_INFO_EX):
             self.info_ex = parse_eos_device_info_ex(self._data(Op.EOS_GET_DEVICE_INFO_EX))
-        self.settle()
+        self.settle((*SETTLE_PROPS, *requested))
         current = self._eos_values.get(EosProp.CAPTURE_DESTINATION)
         self.initial_capture_destination = current.value if current else None
 

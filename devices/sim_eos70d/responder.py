@@ -201,6 +201,8 @@ class SimBehaviour:
     focus_mode: int | None = None
 
 
+#: MTP GetObjectPropsSupported (the 70D lists MTP's object-property operations 0x9801-0x9805).
+MTP_GET_OBJECT_PROPS_SUPPORTED = 0x9801
 _DATA_OUT_OPS = {Op.SET_DEVICE_PROP_VALUE, Op.EOS_SET_DEVICE_PROP_VALUE_EX, Op.SEND_OBJECT_INFO, Op.SEND_OBJECT}
 #: Operations a busy body still answers normally.
 _ALWAYS_ANSWERED = {Op.EOS_GET_EVENT, Op.CLOSE_SESSION, Op.EOS_REMOTE_RELEASE_OFF, Op.EOS_KEEP_DEVICE_ON}
@@ -262,6 +264,8 @@ class SimEos70D:
 
     # -- the body's settings, from the public facts ----------------------------------------------------------------
     def _load_facts(self) -> None:
+        self._initial_order = [prop for prop, _raw in facts_70d.INITIAL_VALUES]  # 0xD1A0 comes three times
+        self._initial_raw = [bytes.fromhex(raw) for _prop, raw in facts_70d.INITIAL_VALUES]
         for prop, raw in facts_70d.INITIAL_VALUES:
             self.values[prop] = bytes.fromhex(raw)
         for prop, kind, count, raw in facts_70d.INITIAL_LISTS:
@@ -435,10 +439,16 @@ class SimEos70D:
         return {o.filename: o.data for o in self.card.values() if o.object_format != ObjectFormat.ASSOCIATION}
 
     def all_props_events(self) -> list[EosEvent]:
-        """The initial dump: every value record then every list record (the 70D's order)."""
+        """The initial dump: every value record then every list record, in the 70D's order (a property the
+        dump repeats, 0xD1A0, is repeated; the others carry their current value)."""
         out: list[EosEvent] = []
-        for prop, raw in self.values.items():
+        repeated = {p for p in self._initial_order if self._initial_order.count(p) > 1}
+        for prop, initial in zip(self._initial_order, self._initial_raw, strict=True):
+            raw = initial if prop in repeated else self.values[prop]
             out.append(EosPropValueChanged(prop, int.from_bytes(raw[:4], "little"), raw))
+        for prop, raw in self.values.items():
+            if prop not in self._initial_order and prop not in self._requested:
+                out.append(EosPropValueChanged(prop, int.from_bytes(raw[:4], "little"), raw))
         for prop, (kind, count, raw) in self.lists.items():
             out.append(self._list_event(prop, kind, count, raw))
         return out
@@ -572,7 +582,7 @@ class SimEos70D:
         for k in range(n):
             chunk = events[k * size : (k + 1) * size]
             if chunk:
-                self._queue(chunk, self.behaviour.settings_delay_s + 0.001 * k)
+                self._queue(chunk, self.behaviour.settings_delay_s)  # one batch per poll, in order
 
     def _focus_report(self) -> EosPropValueChanged | None:
         result = self.behaviour.af_result
@@ -672,6 +682,8 @@ class SimEos70D:
                 datatype, _writable, value, _enum = entry
                 raw = pack_string(value) if datatype == 0xFFFF else struct.pack("<I" if datatype == 6 else "<B", value)
                 return ok(data=raw)
+            if code == MTP_GET_OBJECT_PROPS_SUPPORTED:  # the 70D lists MTP's 0x9801; it offers none here
+                return ok(data=pack_array("H", []))
             if code == Op.INITIATE_CAPTURE:
                 if self.eos:
                     return fail(Resp.OPERATION_NOT_SUPPORTED)
@@ -707,7 +719,7 @@ class SimEos70D:
             prop = p[0] if p else 0
             if prop in self._requested:
                 self.values[prop] = self._requested[prop]
-                self._queue_value(prop, 0.01)
+                self._queue_value(prop)
                 return ok()
             return fail(Resp.GENERAL_ERROR)
         if code == Op.EOS_SET_REQUEST_OLC_INFO_GROUP:
