@@ -18,8 +18,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 os.environ.setdefault("RERUN_ANALYTICS", "0")
 
-from mca.capture.live import run_live  # noqa: E402
-from mca.capture.tether import camera_factory, make_sim_rig  # noqa: E402
+from mca.capture.live import run_live
+from mca.capture.tether import camera_factory, make_sim_rig
 
 
 def main() -> None:

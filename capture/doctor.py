@@ -52,7 +52,18 @@ NEEDED_EOS_OPS = {
     Op.EOS_SET_REMOTE_MODE: "remote control",
     Op.EOS_SET_EVENT_MODE: "event reporting",
 }
-AE_MODES = {0: "P", 1: "Tv", 2: "Av", 3: "M", 4: "Bulb", 5: "A-DEP", 6: "DEP", 7: "Custom", 8: "Lock", 9: "Green (auto)"}
+AE_MODES = {
+    0: "P",
+    1: "Tv",
+    2: "Av",
+    3: "M",
+    4: "Bulb",
+    5: "A-DEP",
+    6: "DEP",
+    7: "Custom",
+    8: "Lock",
+    9: "Green (auto)",
+}
 FOCUS_MODES = {0: "One-Shot AF", 1: "AI Servo AF", 2: "AI Focus AF", 3: "manual focus"}
 
 
@@ -142,7 +153,9 @@ def diagnose(cam: Camera, *, usb_ids: tuple[int, int] | None = None, live_view: 
         try:
             desc = cam.prop_desc(code)
             allowed = f", allowed {list(desc.allowed)}" if desc.form == "enum" else ""
-            add(f"    {prop_name(code)}: type 0x{desc.datatype:04X}, {'rw' if desc.writable else 'ro'}, {desc.current!r}{allowed}")
+            add(
+                f"    {prop_name(code)}: type 0x{desc.datatype:04X}, {'rw' if desc.writable else 'ro'}, {desc.current!r}{allowed}"
+            )
         except (TransportError, ProtocolError, PtpError) as exc:
             add(f"    {prop_name(code)}: {exc}")
     values, lists = cam.reported_values(), cam.reported_allowed()
@@ -204,7 +217,11 @@ def diagnose(cam: Camera, *, usb_ids: tuple[int, int] | None = None, live_view: 
             else "RemoteRelease 0x910F"
         )
     else:
-        release = "InitiateCapture 0x100E" if cam.info.supports(Op.INITIATE_CAPTURE) else "none: this body cannot be triggered"
+        release = (
+            "InitiateCapture 0x100E"
+            if cam.info.supports(Op.INITIATE_CAPTURE)
+            else "none: this body cannot be triggered"
+        )
     add(f"shutter release:     {release}")
     download = (
         "EOS GetPartialObject 0x9107"
@@ -215,7 +232,9 @@ def diagnose(cam: Camera, *, usb_ids: tuple[int, int] | None = None, live_view: 
     if cam.is_eos:
         add(f"capture target card: value {cam.card_capture_destination()} (the first non-RAM value the body lists)")
         add(f"files per shot:      {cam.files_per_shot()}")
-        add(f"live view:           {'GetViewFinderData 0x9153' if cam.info.supports(Op.EOS_GET_VIEWFINDER_DATA) else 'not offered'}")
+        add(
+            f"live view:           {'GetViewFinderData 0x9153' if cam.info.supports(Op.EOS_GET_VIEWFINDER_DATA) else 'not offered'}"
+        )
     add("timeouts and budgets:")
     for f in fields(cam.policy):
         add(f"    {f.name} = {getattr(cam.policy, f.name)}")
@@ -240,15 +259,23 @@ def diagnose(cam: Camera, *, usb_ids: tuple[int, int] | None = None, live_view: 
         fmt = values.get(EosProp.IMAGE_FORMAT)
         entries = image_format_of(fmt.raw) if fmt else None
         if entries is not None and not any(kind == 6 for kind, _s, _c in entries):
-            find(f"image format is {image_format_name(entries)}: the depth pipeline wants RAW (mca camera config set imageformat RAW)")
+            find(
+                f"image format is {image_format_name(entries)}: the depth pipeline wants RAW (mca camera config set imageformat RAW)"
+            )
         ae = values.get(EosProp.AUTO_EXPOSURE_MODE)
         if ae is not None and ae.value not in (0, 1, 2, 3):
-            find(f"the mode dial is on {AE_MODES.get(ae.value, hex(ae.value))}: settings cannot be changed remotely; use M")
+            find(
+                f"the mode dial is on {AE_MODES.get(ae.value, hex(ae.value))}: settings cannot be changed remotely; use M"
+            )
         shots = values.get(EosProp.AVAILABLE_SHOTS)
         if shots is not None and shots.value == 0:
             find("the body reports 0 available shots (card full or missing)")
         if cam.info_ex is not None:
-            silent = [p for p in (EosProp.CAPTURE_DESTINATION, EosProp.IMAGE_FORMAT) if p in cam.info_ex.properties and p not in values]
+            silent = [
+                p
+                for p in (EosProp.CAPTURE_DESTINATION, EosProp.IMAGE_FORMAT)
+                if p in cam.info_ex.properties and p not in values
+            ]
             for p in silent:
                 find(f"{prop_name(p)} is listed in GetDeviceInfoEx but was never reported")
     if live_view and cam.is_eos:

@@ -114,7 +114,16 @@ def test_gphoto2_cli_capture_and_download_gives_a_cr2_rawpy_opens(served_sim: in
     data = (tmp_path / "shot.cr2").read_bytes()
     assert data == _expected_first_shot()
     to_card = subprocess.run(
-        ["gphoto2", "--port", port, "--set-config", "capturetarget=1", "--capture-image-and-download", "--filename", "card.cr2"],
+        [
+            "gphoto2",
+            "--port",
+            port,
+            "--set-config",
+            "capturetarget=1",
+            "--capture-image-and-download",
+            "--filename",
+            "card.cr2",
+        ],
         capture_output=True,
         text=True,
         timeout=60,

@@ -378,7 +378,7 @@ def test_storage_info_offsets_and_the_real_r10_no_card_answer() -> None:
     raw = pack_storage_info(StorageInfo(4, 3, 0, 5, 6, 7, "SD1", ""))
     assert struct.unpack_from("<HHHQQI", raw) == (4, 3, 0, 5, 6, 7) and raw[26] == 4  # description at offset 26
     # An EOS R10 without a card answered EOS GetStorageInfo with these 38 bytes (eos-traces, R10 log).
-    r10 = bytes.fromhex("04000300" "0000" + "00" * 16 + "ffffffff" "04530044003100" "0000" "00" "0000")
+    r10 = bytes.fromhex("040003000000" + "00" * 16 + "ffffffff045300440031000000000000")
     assert len(r10) == 38
     info = parse_storage_info(r10)
     assert (info.storage_type, info.filesystem_type, info.max_capacity_bytes, info.description) == (4, 3, 0, "SD1")
@@ -511,7 +511,7 @@ def test_prop_desc_layout_and_bounds() -> None:
 
 def test_battery_level_enumeration_sent_as_words_is_read_as_the_camera_means_it() -> None:
     """The 60D trace: BatteryLevel declared UINT8, enumeration 100, 75, 50, 25, 0 sent as u16 words."""
-    raw = bytes.fromhex("015002000032320205006400" "4b003200" "19000000")
+    raw = bytes.fromhex("0150020000323202050064004b00320019000000")
     desc = parse_prop_desc(raw)
     assert (desc.code, desc.datatype, desc.current, desc.allowed) == (0x5001, 2, 0x32, (100, 75, 50, 25, 0))
 
@@ -525,7 +525,12 @@ def test_eos_device_info_ex_round_trips(events: list[int], props: list[int], unk
 
 
 @ROUND_TRIP
-@given(st.lists(st.builds(EosFolderEntry, u32s, u32s, u16s, st.integers(0, 255), u32s, ascii_names.map(lambda s: s[:15]), u32s), max_size=10))
+@given(
+    st.lists(
+        st.builds(EosFolderEntry, u32s, u32s, u16s, st.integers(0, 255), u32s, ascii_names.map(lambda s: s[:15]), u32s),
+        max_size=10,
+    )
+)
 def test_eos_folder_listing_round_trips(entries: list[EosFolderEntry]) -> None:
     assert parse_eos_folder_entries(pack_eos_folder_entries(entries)) == tuple(entries)
 
@@ -548,10 +553,22 @@ eos_events = st.one_of(
     st.builds(EosRequestObjectTransfer, u32s, u16s, u32s, ascii_names),
     st.builds(EosObjectRemoved, u32s),
     st.builds(lambda p, v: EosPropValueChanged(p, v, struct.pack("<I", v)), u16s, u32s),
-    st.builds(lambda p, raw: EosPropValueChanged(p, int.from_bytes(raw[:4], "little"), raw), u16s, st.binary(min_size=1, max_size=40)),
-    st.builds(lambda p, vs: EosAvailListChanged(p, 3, tuple(vs), tuple(struct.pack("<I", v) for v in vs)), u16s.filter(lambda p: p not in (0xD120, 0xD121, 0xD122)), st.lists(u32s, min_size=1, max_size=20)),
+    st.builds(
+        lambda p, raw: EosPropValueChanged(p, int.from_bytes(raw[:4], "little"), raw),
+        u16s,
+        st.binary(min_size=1, max_size=40),
+    ),
+    st.builds(
+        lambda p, vs: EosAvailListChanged(p, 3, tuple(vs), tuple(struct.pack("<I", v) for v in vs)),
+        u16s.filter(lambda p: p not in (0xD120, 0xD121, 0xD122)),
+        st.lists(u32s, min_size=1, max_size=20),
+    ),
     st.builds(EosCameraStatus, u32s),
-    st.builds(EosUnknownEvent, st.integers(0xC000, 0xCFFF).filter(lambda c: c not in (0xC181, 0xC182, 0xC186, 0xC187, 0xC189, 0xC18A, 0xC18B)), st.binary(max_size=30)),
+    st.builds(
+        EosUnknownEvent,
+        st.integers(0xC000, 0xCFFF).filter(lambda c: c not in (0xC181, 0xC182, 0xC186, 0xC187, 0xC189, 0xC18A, 0xC18B)),
+        st.binary(max_size=30),
+    ),
 )
 
 
@@ -661,7 +678,7 @@ def test_focus_info_round_trips_and_reads_the_70d_dump() -> None:
     assert none_focused is not None and not none_focused.focused
     assert parse_focus_info_ex(struct.pack("<IHHHHHHHH", 20, 16, 4, 0, 0, 0, 0, 0, 0)) is None  # a placeholder
     # The 70D's FocusInfoEx as libgphoto2's hand decode shows it: 31 points in the struct, 19 in use, 5472x3648.
-    head = bytes.fromhex("1a01000016010400" "1f001300" "6015400e6015400e")
+    head = bytes.fromhex("1a010000160104001f0013006015400e6015400e")
     dump = parse_focus_info_ex(head + bytes(282 - len(head)))
     assert dump is not None and (dump.version, dump.points_total, dump.points_in_use) == (4, 31, 19)
     assert (dump.image_width_px, dump.image_height_px) == (5472, 3648) and not dump.focused
@@ -686,7 +703,9 @@ def test_ptpip_operation_packets_round_trip(code: int, tid: int, params: list[in
 
 @ROUND_TRIP
 @given(u16s, u32s, st.lists(u32s, max_size=3), st.binary(min_size=16, max_size=16), texts, u32s)
-def test_ptpip_other_packets_round_trip(code: int, tid: int, params: list[int], guid: bytes, name: str, total: int) -> None:
+def test_ptpip_other_packets_round_trip(
+    code: int, tid: int, params: list[int], guid: bytes, name: str, total: int
+) -> None:
     ev = parse_event_packet(pack_event_packet(code, tid, tuple(params))[8:])
     assert (ev.code, ev.transaction_id, ev.params) == (code, tid, tuple(params))
     req = parse_init_command_request(pack_init_command_request(guid, name)[8:])

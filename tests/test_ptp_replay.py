@@ -40,7 +40,9 @@ from mca.devices.sim_eos70d.usb_backend import SimUsbBackend
 TRACES = Path(__file__).resolve().parents[1] / ".." / "shared" / "reference" / "eos-traces"
 if not TRACES.is_dir():
     TRACES = Path("/work/shared/reference/eos-traces")
-pytestmark = pytest.mark.skipif(not TRACES.is_dir(), reason="the EOS traces (../shared/reference/eos-traces) are absent")
+pytestmark = pytest.mark.skipif(
+    not TRACES.is_dir(), reason="the EOS traces (../shared/reference/eos-traces) are absent"
+)
 
 SESSIONS = {
     "60d-debuglog": "eos60d_libgphoto2-60d-debuglog.log",
@@ -48,7 +50,10 @@ SESSIONS = {
     "eos-m": "eosm_timelapsebot-trigger-capture.log",
     "r10": "eosr10_dclr-booth-capture-attempt.log",
 }
-FRAGMENTS = {"5d3": "eos5dmk3_libgphoto2-5dmark3-partial.log", "400d": "eos400d_libgphoto2-400d-objectaddedex-fragment.log"}
+FRAGMENTS = {
+    "5d3": "eos5dmk3_libgphoto2-5dmark3-partial.log",
+    "400d": "eos400d_libgphoto2-400d-objectaddedex-fragment.log",
+}
 FAST = PtpPolicy(settle_s=0.2, focus_wait_s=0.1, object_wait_s=0.5, transaction_timeout_s=2.0)
 _cache: dict[str, object] = {}
 
@@ -103,7 +108,11 @@ def test_every_device_info_decodes_to_what_libgphoto2_printed(name: str) -> None
     assert decoded and printed
     wire, shown = decoded[0], printed[0]
     assert wire.vendor_extension_id == 6  # every EOS body sends Microsoft's id on the wire
-    assert (wire.manufacturer, wire.model, wire.device_version) == (shown.manufacturer, shown.model, shown.device_version)
+    assert (wire.manufacturer, wire.model, wire.device_version) == (
+        shown.manufacturer,
+        shown.model,
+        shown.device_version,
+    )
     assert wire.serial_number == shown.serial_number and wire.vendor_extension_version == shown.vendor_extension_version
     # libgphoto2 prints the id as sent (2.5.31 does, first) and after its fix-up; ours, done the same way, agrees
     fixed = [p.vendor_extension_id for p in printed if p.vendor_extension_id != wire.vendor_extension_id]
@@ -139,7 +148,9 @@ def test_every_event_list_decodes_record_by_record_as_libgphoto2_printed_it(name
         if not shown:
             continue
         ours = [e for e in events if isinstance(e, (EosPropValueChanged, EosAvailListChanged, EosUnknownEvent))]
-        ours = [e for e in ours if not (isinstance(e, EosUnknownEvent) and e.code == 0xC1A5)]  # OLC: split by libgphoto2
+        ours = [
+            e for e in ours if not (isinstance(e, EosUnknownEvent) and e.code == 0xC1A5)
+        ]  # OLC: split by libgphoto2
         shown = [s for s in shown if s.index < len(ours) + 1000]
         for mine, theirs in zip(ours, shown):
             if theirs.kind == "info":
@@ -263,7 +274,9 @@ def test_the_r10s_device_busy_on_the_full_press_is_handled_without_a_second_rele
         with pytest.raises(ReleaseRefused) as refused:
             cam.trigger()
         assert refused.value.code == Resp.DEVICE_BUSY
-        releases = [(c, p) for c, p in responder.operations_log if c in (Op.EOS_REMOTE_RELEASE_ON, Op.EOS_REMOTE_RELEASE_OFF)]
+        releases = [
+            (c, p) for c, p in responder.operations_log if c in (Op.EOS_REMOTE_RELEASE_ON, Op.EOS_REMOTE_RELEASE_OFF)
+        ]
         assert releases == [
             (Op.EOS_REMOTE_RELEASE_ON, (1, 0)),
             (Op.EOS_REMOTE_RELEASE_ON, (2, 0)),
@@ -289,12 +302,16 @@ def test_the_tethering_session_does_not_release_again_after_the_r10s_refusal(tmp
     results = session.capture(1)
     session.close()
     assert [r.status for r in results] == ["refused"] and "no picture was taken" in results[0].message
-    assert [(c, p) for c, p in responder.operations_log if c == Op.EOS_REMOTE_RELEASE_ON].count((Op.EOS_REMOTE_RELEASE_ON, (2, 0))) == 1
+    assert [(c, p) for c, p in responder.operations_log if c == Op.EOS_REMOTE_RELEASE_ON].count(
+        (Op.EOS_REMOTE_RELEASE_ON, (2, 0))
+    ) == 1
 
 
 def test_the_eos_m_empty_data_phase_with_an_error_response_is_an_answer_not_a_fault() -> None:
     """The EOS M answered GetObjectInfoEx with a 12-byte (empty) data phase and GeneralError."""
-    [x] = [x for x in trace("eos-m").transactions if x.command is not None and x.command.code == Op.EOS_GET_OBJECT_INFO_EX]
+    [x] = [
+        x for x in trace("eos-m").transactions if x.command is not None and x.command.code == Op.EOS_GET_OBJECT_INFO_EX
+    ]
     assert x.data_in == b"" and x.response.code == Resp.GENERAL_ERROR
     responder = ReplayResponder(trace("eos-m").transactions)
     backend = SimUsbBackend(responder)  # type: ignore[arg-type]

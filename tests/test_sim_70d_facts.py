@@ -21,7 +21,9 @@ for candidate in (Path(__file__).resolve().parents[2] / "shared" / "reference" /
     if candidate.is_dir():
         TRACES = candidate
         break
-pytestmark = pytest.mark.skipif(not TRACES.is_dir(), reason="the EOS 70D facts (../shared/reference/eos-traces) are absent")
+pytestmark = pytest.mark.skipif(
+    not TRACES.is_dir(), reason="the EOS 70D facts (../shared/reference/eos-traces) are absent"
+)
 
 #: Where the simulated body differs from the dump's 70D, and why (the dump's owner had a kit zoom, the dial on
 #: a scene mode, no card, JPEG; the simulated one is set up for MCA work).
@@ -41,6 +43,9 @@ EXPECTED_DIFFERENCES = {
 }
 
 
+STRING_PROPS = (EosProp.LENS_NAME, EosProp.SERIAL_NUMBER, EosProp.OWNER, EosProp.ARTIST, EosProp.COPYRIGHT)
+
+
 def _readme() -> str:
     return (TRACES / "README.md").read_text()
 
@@ -48,7 +53,7 @@ def _readme() -> str:
 def _block(title: str) -> list[int]:
     m = re.search(re.escape(title) + r"\n```\n(.*?)```", _readme(), re.S)
     assert m, title
-    return [int(x, 16) if x.startswith("0x") else int(x, 16) for x in m.group(1).split()]
+    return [int(x, 16) for x in m.group(1).split()]
 
 
 def _table() -> dict[int, dict]:
@@ -58,7 +63,9 @@ def _table() -> dict[int, dict]:
             continue
         prop, size, cur, *rest = [x.strip() for x in line.split("|")]
         desc = rest[-1]
-        m = re.match(r"desc: propxtype (\d+), datasize (\d+)(?:, datatype 0x[0-9a-f]+, count (\d+))? values=(.*)$", desc)
+        m = re.match(
+            r"desc: propxtype (\d+), datasize (\d+)(?:, datatype 0x[0-9a-f]+, count (\d+))? values=(.*)$", desc
+        )
         assert m, line
         out[int(prop, 16)] = dict(
             size=None if size == "size=None" else int(size.split("=")[1]),
@@ -88,7 +95,20 @@ def test_device_info_matches_the_70d_field_by_field(received: Camera) -> None:
     assert wire.properties == (0xD049, 0xD402, 0xD407, 0xD406, 0xD303, 0x5001)
     assert "**DeviceProps (6):** **0xd049** 0xd402 0xd407 0xd406 0xd303 0x5001" in readme
     assert wire.capture_formats == (0x3801,)
-    assert wire.image_formats == (0x3001, 0x3002, 0x3006, 0x300A, 0x3008, 0x3801, 0xB101, 0xB103, 0xBF02, 0x3800, 0xB104, 0xB105)
+    assert wire.image_formats == (
+        0x3001,
+        0x3002,
+        0x3006,
+        0x300A,
+        0x3008,
+        0x3801,
+        0xB101,
+        0xB103,
+        0xBF02,
+        0x3800,
+        0xB104,
+        0xB105,
+    )
     assert (wire.vendor_extension_id, wire.vendor_extension_version, wire.vendor_extension_desc) == (6, 100, "")
     assert "VendorExtensionID **6**, VendorExtensionVersion **100**" in readme
     assert (wire.standard_version, wire.functional_mode) == (100, 0)
@@ -106,7 +126,9 @@ def test_device_info_ex_matches_the_70d(received: Camera) -> None:
     assert ex is not None
     m = re.search(r"\*\*Events \(18\):\*\* (.*)\n", _readme())
     assert list(ex.events) == [int(x.strip("."), 16) for x in m.group(1).split()]
-    assert list(ex.properties) == [int(x, 16) for x in re.search(r"\*\*Device props \(123\):\*\*\n```\n(.*?)```", _readme(), re.S).group(1).split()]
+    assert list(ex.properties) == [
+        int(x, 16) for x in re.search(r"\*\*Device props \(123\):\*\*\n```\n(.*?)```", _readme(), re.S).group(1).split()
+    ]
     assert ex.unknown == (0, 1, 2, 4, 8)
 
 
@@ -128,12 +150,11 @@ def test_the_initial_event_list_matches_the_70d_property_by_property(received: C
             elif prop == EosProp.IMAGE_FORMAT:
                 if image_format_of(got.raw) != ((1, 0, 3),):  # the README: Large Fine JPEG
                     differing_values.add(prop)
-            elif prop in (EosProp.LENS_NAME, EosProp.SERIAL_NUMBER, EosProp.OWNER, EosProp.ARTIST, EosProp.COPYRIGHT):
+            elif prop in STRING_PROPS:
                 if got.text != fact["cur"]:
                     differing_values.add(prop)
-            elif re.fullmatch(r"[0-9a-f]+", fact["cur"]):
-                if got.value != int(fact["cur"], 16):
-                    differing_values.add(prop)
+            elif re.fullmatch(r"[0-9a-f]+", fact["cur"]) and got.value != int(fact["cur"], 16):
+                differing_values.add(prop)
         else:
             assert prop not in values, f"0x{prop:04X}: the dump has no value record"
         assert prop in lists, f"list record of 0x{prop:04X} never reported"
@@ -151,7 +172,11 @@ def test_the_initial_event_list_matches_the_70d_property_by_property(received: C
     assert len([p for p, f in table.items() if f["size"] is not None]) == 112  # 114 records: 0xD1A0 comes 3 times
     assert len(table) == 122 and len(lists) >= 122  # one list record per property
     # spot checks against the README's table of current values
-    assert values[EosProp.CAPTURE_DESTINATION].value == 2 and list(lists[EosProp.CAPTURE_DESTINATION].values) == [2, 6, 4]
+    assert values[EosProp.CAPTURE_DESTINATION].value == 2 and list(lists[EosProp.CAPTURE_DESTINATION].values) == [
+        2,
+        6,
+        4,
+    ]
     assert values[EosProp.MODEL_ID].value == 0x80000325 and values[0xD10A].value == 0x1450
     assert values[EosProp.SERIAL_NUMBER].text == "023021005149" and values[EosProp.OWNER].raw == b"\x00"
     assert image_format_of(values[EosProp.IMAGE_FORMAT].raw) == ((6, 0, 4),)

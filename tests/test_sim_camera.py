@@ -121,7 +121,7 @@ def test_ptpip_server_refuses_non_loopback_addresses() -> None:
 
 
 def test_the_eos_folder_listing_and_standard_property_descriptions() -> None:
-    from mca.devices.ptp.datasets import parse_eos_folder_entries, parse_prop_desc
+    from mca.devices.ptp.datasets import parse_eos_folder_entries
     from mca.devices.sim_eos70d.responder import SimBehaviour
 
     backend = SimUsbBackend(SimEos70D(behaviour=SimBehaviour(files_on_card=4)))

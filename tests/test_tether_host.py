@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from mca.capture.tether import TetherSession, camera_factory, make_sim_rig
-from mca.devices.ptp.camera import Camera
+from mca.devices.ptp.camera import Camera, CaptureError, PtpError
 from mca.devices.ptp.codec import Container
 from mca.devices.ptp.codes import ContainerType, Op, Resp
 from mca.devices.ptp.properties import EOS_APERTURE, EOS_ISO, EOS_SHUTTER, spec_for
@@ -158,7 +158,7 @@ def test_a_failed_half_press_is_released() -> None:
 
     _wrap(sim, hook)
     cam = _open(backend)
-    with pytest.raises(Exception):
+    with pytest.raises((CaptureError, PtpError)):
         cam.capture()
     cam.close()
     ops = _ops(sim)
@@ -315,7 +315,11 @@ def test_closing_restores_the_capture_destination_and_turns_the_display_back_on(
     session.close()
     assert sim.props[0xD11C] == 2
     ops = _ops(sim)
-    tail = [op for op in ops[ops.index(Op.EOS_REMOTE_RELEASE_ON) :] if op in (Op.EOS_SET_REMOTE_MODE, Op.EOS_SET_EVENT_MODE, Op.CLOSE_SESSION)]
+    tail = [
+        op
+        for op in ops[ops.index(Op.EOS_REMOTE_RELEASE_ON) :]
+        if op in (Op.EOS_SET_REMOTE_MODE, Op.EOS_SET_EVENT_MODE, Op.CLOSE_SESSION)
+    ]
     assert tail == [Op.EOS_SET_REMOTE_MODE, Op.EOS_SET_REMOTE_MODE, Op.EOS_SET_EVENT_MODE, Op.CLOSE_SESSION]
     assert sim.remote_mode == 0 or sim.session_id == 0
 

@@ -6,7 +6,9 @@ from pathlib import Path
 
 import typer
 
-camera_app = typer.Typer(help="Tethered camera: list, info, config, doctor, and the simulated EOS 70D.", no_args_is_help=True)
+camera_app = typer.Typer(
+    help="Tethered camera: list, info, config, doctor, and the simulated EOS 70D.", no_args_is_help=True
+)
 
 CAMERA_OPTION = typer.Option("auto", "--camera", "-c", help="auto, sim, sim:SCENARIO, usb:BUS:ADDR or ptpip:HOST:PORT")
 

@@ -279,9 +279,7 @@ class Camera:
                 if resp.code == Resp.OK:
                     requested.append(prop)
                 else:
-                    self.anomalies.append(
-                        f"RequestDevicePropValue(0x{prop:04X}) answered {name_of(Resp, resp.code)}"
-                    )
+                    self.anomalies.append(f"RequestDevicePropValue(0x{prop:04X}) answered {name_of(Resp, resp.code)}")
         if self.info.supports(Op.EOS_GET_DEVICE_INFO_EX):
             self.info_ex = parse_eos_device_info_ex(self._data(Op.EOS_GET_DEVICE_INFO_EX))
         self.settle((*SETTLE_PROPS, *requested))
@@ -371,7 +369,13 @@ class Camera:
             self.operations_sent.append(op)
             try:
                 resp = self.transport.transaction(
-                    op, tid, tuple(params), data_out=data_out, sink=sink, max_data_bytes=max_data_bytes, timeout_s=timeout
+                    op,
+                    tid,
+                    tuple(params),
+                    data_out=data_out,
+                    sink=sink,
+                    max_data_bytes=max_data_bytes,
+                    timeout_s=timeout,
                 )
             except DeviceDisconnected:
                 self._mark_events_lost(op)
@@ -596,8 +600,7 @@ class Camera:
             if time.monotonic() >= deadline:
                 if missing:
                     self.anomalies.append(
-                        "after the start-up wait the body had not reported "
-                        + ", ".join(f"0x{p:04X}" for p in missing)
+                        "after the start-up wait the body had not reported " + ", ".join(f"0x{p:04X}" for p in missing)
                     )
                 return not missing
             delay = 0.0 if events else min(self.policy.poll_max_s, delay + self.policy.poll_step_s)
@@ -1042,15 +1045,14 @@ class Camera:
             else:
                 code = code_for(spec.table or {}, wanted, offered)
             if code is None or (offered and code not in offered):
-                raise ValueError(
-                    f"{wanted!r} is not allowed for {spec.name}; choose from {', '.join(current.allowed) or '(none offered)'}"
-                )
+                offered_names = ", ".join(current.allowed) or "(none offered)"
+                raise ValueError(f"{wanted!r} is not allowed for {spec.name}; choose from {offered_names}")
             if self._prop_value(spec.eos_code) == code:
                 return current  # setting the same capture destination can answer DeviceBusy on EOS bodies
             self._set_eos_u32(spec.eos_code, code)
-            if spec.eos_code == EosProp.CAPTURE_DESTINATION and code == CAPTURE_DESTINATION_RAM:
-                if self.info.supports(Op.EOS_PC_HDD_CAPACITY):  # busy here is harmless (libgphoto2)
-                    self._call(Op.EOS_PC_HDD_CAPACITY, HOST_CAPACITY_PARAMS, check=False)
+            to_ram = spec.eos_code == EosProp.CAPTURE_DESTINATION and code == CAPTURE_DESTINATION_RAM
+            if to_ram and self.info.supports(Op.EOS_PC_HDD_CAPACITY):  # busy here is harmless (libgphoto2)
+                self._call(Op.EOS_PC_HDD_CAPACITY, HOST_CAPACITY_PARAMS, check=False)
             return self.get_property(spec.name)
         desc = self.prop_desc(spec.std_code)  # type: ignore[arg-type]
         try:

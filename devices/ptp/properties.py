@@ -95,14 +95,23 @@ CAPTURE_TARGET_ALIASES = {"card": "Memory card", "ram": "Internal RAM", "sdram":
 
 # Image format entries are (type, size, compression): type 6 RAW / 1 JPEG; size 0 L, 1 M, 2 S, 0xE S1, 0xF S2, 0x10 S3;
 # compression 2 normal, 3 fine, 4 lossless (RAW).
-_SIZE_NAMES = {0: "Large", 1: "Medium", 2: "Small", 5: "Medium1", 6: "Medium2", 0xE: "Small1", 0xF: "Small2", 0x10: "Small3"}
+_SIZE_NAMES = {
+    0: "Large",
+    1: "Medium",
+    2: "Small",
+    5: "Medium1",
+    6: "Medium2",
+    0xE: "Small1",
+    0xF: "Small2",
+    0x10: "Small3",
+}
 _RAW_SIZE_NAMES = {0: "RAW", 1: "mRAW", 2: "sRAW"}
 _QUALITY_NAMES = {2: "Normal", 3: "Fine"}
 ImageFormat = tuple[tuple[int, int, int], ...]
 
 
 def image_format_name(entries: ImageFormat) -> str:
-    """"RAW + Large Fine JPEG" style name of an EOS image format (one or two files per shot)."""
+    """ "RAW + Large Fine JPEG" style name of an EOS image format (one or two files per shot)."""
     parts = []
     for kind, size, compression in entries:
         if kind == 6:

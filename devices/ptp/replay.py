@@ -197,7 +197,11 @@ def group_transactions(containers: list[TraceContainer]) -> list[RecordedTransac
             flush()
             current = dict(line=tc.line, command=c)
             continue
-        same = current is not None and current["command"] is not None and current["command"].transaction_id == c.transaction_id
+        same = (
+            current is not None
+            and current["command"] is not None
+            and current["command"].transaction_id == c.transaction_id
+        )
         if not same:
             flush()
             current = dict(line=tc.line, command=None)
@@ -316,12 +320,16 @@ def printed_events(lines: list[str], start: int, end: int) -> list[PrintedEvent]
             continue
         info = re.match(r"EOS prop ([0-9a-f]{4})( \(.*?\))? info record, datasize is (\d+)", rest)
         desc = re.match(r"EOS prop ([0-9a-f]{4})( \(.*?\))? desc record, datasize (\d+), propxtype (\d+)", rest)
-        unknown = re.match(r"unknown EOS event ([0-9a-f]{4})", rest) or re.match(r"unhandled EOS event (\w+) \(size", rest)
+        unknown = re.match(r"unknown EOS event ([0-9a-f]{4})", rest) or re.match(
+            r"unhandled EOS event (\w+) \(size", rest
+        )
         if info or desc or unknown:
             if idx in records:  # a new poll restarted the numbering
                 break
             if info:
-                records[idx] = dict(line=n + 1, index=idx, kind="info", prop=int(info.group(1), 16), datasize=int(info.group(3)))
+                records[idx] = dict(
+                    line=n + 1, index=idx, kind="info", prop=int(info.group(1), 16), datasize=int(info.group(3))
+                )
             elif desc:
                 records[idx] = dict(
                     line=n + 1,
@@ -346,7 +354,8 @@ def printed_events(lines: list[str], start: int, end: int) -> list[PrintedEvent]
         elif sup:
             records[idx]["suppvals"].append(int(sup.group(3), 16))
     return [
-        PrintedEvent(**{**records[i], "suppvals": tuple(records[i].get("suppvals", ()))}) for i in order  # type: ignore[arg-type]
+        PrintedEvent(**{**records[i], "suppvals": tuple(records[i].get("suppvals", ()))})
+        for i in order  # type: ignore[arg-type]
     ]
 
 

@@ -84,10 +84,10 @@ class Transport(ABC):
     def read_event(self, timeout_s: float) -> Container | None:
         """The next standard event (interrupt endpoint / event channel), or None after the timeout."""
 
-    def recover(self, transaction_id: int | None = None) -> None:
+    def recover(self, transaction_id: int | None = None) -> None:  # noqa: B027 (a no-op unless overridden)
         """Bring the link back to idle after an aborted transaction (cancel, clear stalls, drain)."""
 
-    def reset_device(self) -> None:
+    def reset_device(self) -> None:  # noqa: B027 (a no-op where there is no such request)
         """Ask the device to reset its PTP state (USB class request 0x66); a no-op where there is none."""
 
     @property

@@ -395,7 +395,10 @@ class PtpIpTransport(Transport):
             if kind == OPERATION_RESPONSE:
                 resp = parse_operation_response(body)
                 if resp.transaction_id != transaction_id:
-                    if is_older_transaction(resp.transaction_id, transaction_id) and stale < self.policy.stale_replies_max:
+                    if (
+                        is_older_transaction(resp.transaction_id, transaction_id)
+                        and stale < self.policy.stale_replies_max
+                    ):
                         stale += 1
                         self.counters.stale_replies_discarded += 1
                         if stale_tid == resp.transaction_id and self.on_stale_data is not None and stale_data:

@@ -117,7 +117,9 @@ def _scenarios() -> dict[str, Scenario]:
             "event lists carry records no parser knows (0xC1F6, OLC, list types 1 and 7, odd sizes)",
             behaviour=SimBehaviour(unknown_records=True),
         ),
-        Scenario("card-with-files", "the card already holds files in two folders", behaviour=SimBehaviour(files_on_card=6)),
+        Scenario(
+            "card-with-files", "the card already holds files in two folders", behaviour=SimBehaviour(files_on_card=6)
+        ),
         Scenario(
             "busy-after-shot",
             "the body stays busy 0.4 s after each shot (card write); the next release must wait",
@@ -136,14 +138,18 @@ def _scenarios() -> dict[str, Scenario]:
             faults=FaultPlan(stall_op=Op.EOS_GET_PARTIAL_OBJECT),
             host_timeout_s=0.3,
         ),
-        Scenario("short-reads", "every GetPartialObject sends at most 1000 bytes", faults=FaultPlan(short_read_bytes=1000)),
+        Scenario(
+            "short-reads", "every GetPartialObject sends at most 1000 bytes", faults=FaultPlan(short_read_bytes=1000)
+        ),
         Scenario(
             "corrupt-container",
             "a GetPartialObject response has an impossible length",
             faults=FaultPlan(corrupt_op=Op.EOS_GET_PARTIAL_OBJECT),
             host_timeout_s=0.3,
         ),
-        Scenario("coalesced-response", "responses share a transfer with the data", faults=FaultPlan(coalesce_response=True)),
+        Scenario(
+            "coalesced-response", "responses share a transfer with the data", faults=FaultPlan(coalesce_response=True)
+        ),
         Scenario(
             "full-press-busy",
             "the full press answers DeviceBusy and nothing is taken (the EOS R10 trace)",

@@ -131,6 +131,8 @@ def default_live_view_source(index: int) -> bytes:
     y = np.linspace(0, 255, h, dtype=np.float32)[:, None]
     image = np.stack([np.broadcast_to((x + 3 * index) % 256, (h, w)), np.broadcast_to(y, (h, w)), (x + y) / 2], -1)
     ok, encoded = cv2.imencode(".jpg", image.astype(np.uint8))
+    if not ok:
+        raise RuntimeError("could not encode a live-view frame")
     return encoded.tobytes()
 
 
@@ -323,7 +325,9 @@ class SimEos70D:
             parent = FOLDER_HANDLE if i % 2 == 0 else second
             name = f"IMG_{9000 + i:04d}.JPG"
             data = hashlib.sha256(name.encode()).digest() * (64 + i)
-            self.card[handle] = SimObject(handle, CARD_STORAGE_ID, parent, ObjectFormat.JPEG, name, data, "20240101T120000")
+            self.card[handle] = SimObject(
+                handle, CARD_STORAGE_ID, parent, ObjectFormat.JPEG, name, data, "20240101T120000"
+            )
 
     # -- description -----------------------------------------------------
     def device_info(self) -> DeviceInfo:
@@ -724,7 +728,9 @@ class SimEos70D:
             return fail(Resp.GENERAL_ERROR)
         if code == Op.EOS_SET_REQUEST_OLC_INFO_GROUP:
             if b.unknown_records:
-                self._queue([EosUnknownEvent(EosEventCode.OLC_INFO_CHANGED, struct.pack("<IH", 20, 0x000F) + bytes(14))])
+                self._queue(
+                    [EosUnknownEvent(EosEventCode.OLC_INFO_CHANGED, struct.pack("<IH", 20, 0x000F) + bytes(14))]
+                )
             return ok()
         if code in (Op.EOS_KEEP_DEVICE_ON, Op.EOS_SET_UI_LOCK, Op.EOS_RESET_UI_LOCK, Op.EOS_AF_CANCEL):
             return ok()
@@ -802,10 +808,11 @@ class SimEos70D:
                 return fail(Resp.INVALID_DEVICE_PROP_VALUE)
             if value == self.value(prop):
                 return fail(Resp.DEVICE_BUSY)  # EOS bodies answer busy when set to the value they have
-        elif prop in (EosProp.EVF_OUTPUT_DEVICE, EosProp.EVF_MODE):
-            if value not in self.allowed(prop):
-                return fail(Resp.INVALID_DEVICE_PROP_VALUE)
-        elif prop in (EosProp.ISO_SPEED, EosProp.SHUTTER_SPEED, EosProp.APERTURE):
+        elif prop in (EosProp.EVF_OUTPUT_DEVICE, EosProp.EVF_MODE) or prop in (
+            EosProp.ISO_SPEED,
+            EosProp.SHUTTER_SPEED,
+            EosProp.APERTURE,
+        ):
             if value not in self.allowed(prop):
                 return fail(Resp.INVALID_DEVICE_PROP_VALUE)
         else:
@@ -816,4 +823,4 @@ class SimEos70D:
 
 
 # keep the old name for callers that used the capture-destination constant from here
-__all__ = ["CAPTURE_DESTINATION_CARD", "SimEos70D", "SimBehaviour", "Reply", "deterministic_frame"]
+__all__ = ["CAPTURE_DESTINATION_CARD", "Reply", "SimBehaviour", "SimEos70D", "deterministic_frame"]

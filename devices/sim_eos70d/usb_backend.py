@@ -306,10 +306,15 @@ class SimUsbBackend(usb.backend.IBackend):
             f.late_reply_op = None
             delay += f.late_reply_s
             keep = f.ignore_cancel
-        if f.lose_object_event_reply and cmd.code == Op.EOS_GET_EVENT and reply.data is not None:
-            if any(isinstance(e, (EosObjectAdded, EosRequestObjectTransfer)) for e in parse_eos_events(reply.data)):
-                f.lose_object_event_reply = False
-                return  # the body dequeued the events; the host never hears of them
+        carries_file = (
+            f.lose_object_event_reply
+            and cmd.code == Op.EOS_GET_EVENT
+            and reply.data is not None
+            and any(isinstance(e, (EosObjectAdded, EosRequestObjectTransfer)) for e in parse_eos_events(reply.data))
+        )
+        if carries_file:
+            f.lose_object_event_reply = False
+            return  # the body dequeued the events; the host never hears of them
         if f.epipe_op is not None and cmd.code == f.epipe_op:
             f.epipe_op = None
             self._halted = True
