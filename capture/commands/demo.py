@@ -53,7 +53,13 @@ def register(app: typer.Typer) -> None:
         Without a camera on USB this uses the simulated EOS 70D, which photographs the paper's
         Fig. 4 scenes through the MCA lens simulator, so each shot has a known ground truth.
         """
-        from mca.capture.tether import TetherSession, camera_factory, default_sim_frame_source, make_sim_rig
+        from mca.capture.tether import (
+            TetherError,
+            TetherSession,
+            camera_factory,
+            default_sim_frame_source,
+            make_sim_rig,
+        )
         from mca.devices.ptp.transport import TransportError
 
         spec = camera
@@ -75,20 +81,23 @@ def register(app: typer.Typer) -> None:
             factory = camera_factory(spec)
             typer.echo(f"camera: {spec}", err=True)
 
-        out.mkdir(parents=True, exist_ok=True)
         recording = out / "demo.rrd"
-        session = TetherSession(
-            factory,
-            out / "shots",
-            process=True,
-            profile=profile,
-            record=recording,
-            log=lambda m: typer.echo(f"  {m}", err=True),
-        )
+        try:
+            session = TetherSession(
+                factory,
+                out / "shots",
+                process=True,
+                profile=profile,
+                record=recording,
+                log=lambda m: typer.echo(f"  {m}", err=True),
+            )
+        except TetherError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(2) from exc
         try:
             session.connect()
             results = session.capture(count, 0.0)
-        except TransportError as exc:
+        except (TransportError, TetherError) as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(1) from exc
         finally:
