@@ -51,8 +51,11 @@ RETRIES = 6
 RAW_SUFFIXES = (".CR2", ".CR3", ".DNG", ".TIF", ".TIFF")
 
 
-class TetherError(Exception):
-    """A tethered run cannot go on; the message names the camera or folder and what to do."""
+class TetherError(TransportError):
+    """A tethered run cannot go on; the message names the camera or folder and what to do.
+
+    A `TransportError`, so callers that stop on link failures (the calibration sweep) stop on these too.
+    """
 
 
 def default_sim_frame_source(size: str | float | None = None, profile_name: str = "paper-70d") -> Callable[[int], Any]:
