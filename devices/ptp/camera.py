@@ -686,7 +686,11 @@ class Camera:
             if not self.info.supports(Op.INITIATE_CAPTURE):
                 raise CaptureError(f"{self.name} supports neither EOS remote release nor InitiateCapture")
             ticket = CaptureTicket(self.serial_number, None, 1, False)
-            self._release_once(Op.INITIATE_CAPTURE, (0, 0), ticket)
+            resp = self._release_once(Op.INITIATE_CAPTURE, (0, 0), ticket)
+            if resp.code != Resp.OK:
+                raise ReleaseRefused(
+                    f"{self.name}: InitiateCapture answered {name_of(Resp, resp.code)}; no picture was taken", resp.code
+                )
             return ticket
         self.drain_events()
         self.unclaimed.extend(self._claim())  # files that arrived before this release are not this shot's
