@@ -499,25 +499,33 @@ class Camera:
             if self.is_eos and self.info.supports(Op.EOS_GET_PARTIAL_OBJECT)
             else Op.GET_PARTIAL_OBJECT
         )
-        buffer = bytearray()
+        block = bytearray(min(block_bytes, max(1, size_bytes)))  # one buffer, reused for every block
+        view = memoryview(block)
+        filled = 0
 
         def sink(piece: memoryview) -> None:
-            buffer.extend(piece)
+            nonlocal filled
+            end = filled + len(piece)
+            if end > len(block):
+                raise ProtocolError(f"{self.name}: GetPartialObject sent more than the {len(block)} bytes asked for")
+            view[filled:end] = piece
+            filled = end
 
         def reset() -> None:
-            del buffer[:]
+            nonlocal filled
+            filled = 0
 
         done = 0
         while done < size_bytes:
             want = min(block_bytes, size_bytes - done)
             reset()
             resp = self._call(op, (handle, done, want), sink=sink, sink_reset=reset, max_data_bytes=want)
-            got = len(buffer)
+            got = filled
             if got == 0:
                 raise ProtocolError(f"{self.name}: GetPartialObject at offset {done} returned no data")
             if resp.params and resp.params[0] != got and op == Op.GET_PARTIAL_OBJECT:
                 raise ProtocolError(f"{self.name}: GetPartialObject said {resp.params[0]} bytes but sent {got}")
-            out.write(buffer)
+            out.write(view[:got])
             done += got
             if progress is not None:
                 progress(done, size_bytes)

@@ -166,7 +166,9 @@ class UsbTransport(Transport):
         self._closed = False
         self._rx = array.array("B", bytes(READ_CHUNK_BYTES))
         self._rx_view = memoryview(self._rx)
-        self._pending = b""  # bytes read beyond the container in hand
+        # Bytes read beyond the container in hand: a view into the read buffer, always consumed (copied by its
+        # reader) before the next device read reuses that buffer.
+        self._pending: memoryview | bytes = b""
         try:
             try:
                 if self.dev.is_kernel_driver_active(info.interface_number):
@@ -250,7 +252,7 @@ class UsbTransport(Transport):
         `at_boundary`: nothing of the current container has been read yet, so a stalled endpoint may be
         cleared and the read retried (libgphoto2 retries once, only then).
         """
-        if self._pending:
+        if len(self._pending):
             chunk, self._pending = memoryview(self._pending), b""
             return chunk
         deadline = time.monotonic() + (self.timeout_s if timeout_s is None else timeout_s)
@@ -279,7 +281,7 @@ class UsbTransport(Transport):
             take = n - len(out)
             out += chunk[:take]
             if len(chunk) > take:
-                self._pending = bytes(chunk[take:])
+                self._pending = chunk[take:]
         return bytes(out)
 
     def _read_container_header(self, timeout_s: float | None) -> tuple[ContainerHeader, bytes]:
@@ -299,7 +301,7 @@ class UsbTransport(Transport):
                 kept += chunk[:take]
             remaining -= take
             if len(chunk) > take:
-                self._pending = bytes(chunk[take:])
+                self._pending = chunk[take:]
         if keep and self.on_stale_data is not None and len(kept) <= MAX_DATASET_BYTES:
             self.on_stale_data(header.code, header.transaction_id, bytes(kept))
 
@@ -357,7 +359,7 @@ class UsbTransport(Transport):
                     data_bytes += take
                     remaining -= take
                     if len(chunk) > take:
-                        self._pending = bytes(chunk[take:])
+                        self._pending = chunk[take:]
                 continue
             if header.type != ContainerType.RESPONSE:
                 raise ProtocolError(
