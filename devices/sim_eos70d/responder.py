@@ -14,6 +14,7 @@ a parser for appear in the event lists. `exposures` counts shutter actuations.
 from __future__ import annotations
 
 import hashlib
+import queue
 import struct
 import threading
 import time
@@ -260,8 +261,8 @@ class SimEos70D:
         self.short_partial_bytes = 0  # fault: GetPartialObject sends at most this many bytes (0 = off)
         self.std_event_listeners: list[Callable[[Container], None]] = []
         self._busy_until = 0.0
-        self._writes: list[threading.Thread] = []
-        self._write_lock = threading.Lock()
+        self._writes: queue.Queue = queue.Queue()  # shots are processed one after the other, in order
+        self._writer: threading.Thread | None = None
         self._populate_card(self.behaviour.files_on_card)
 
     # -- the body's settings, from the public facts ----------------------------------------------------------------
@@ -428,8 +429,8 @@ class SimEos70D:
     def wait_idle(self, timeout_s: float = 60.0) -> None:
         """Wait until every shot has been written (tests use it before checking the card)."""
         deadline = time.monotonic() + timeout_s
-        for t in list(self._writes):
-            t.join(max(0.0, deadline - time.monotonic()))
+        while self._writes.unfinished_tasks and time.monotonic() < deadline:
+            time.sleep(0.005)
 
     def file_on_card(self, filename: str) -> bytes:
         self.wait_idle()
@@ -524,19 +525,34 @@ class SimEos70D:
         if not self.eos:  # a generic camera here writes before it answers
             self._write_shot(index, handle, files, to_ram)
             return handle
-        thread = threading.Thread(target=self._write_shot, args=(index, handle, files, to_ram), daemon=True)
-        self._writes = [t for t in self._writes if t.is_alive()] + [thread]
-        thread.start()
+        self._writes.put((index, handle, files, to_ram))
+        if self._writer is None:  # (under self.lock; the writer clears it under the same lock when it ends)
+            self._writer = threading.Thread(target=self._write_loop, name="sim-eos70d-writer", daemon=True)
+            self._writer.start()
         return handle
 
+    def _write_loop(self) -> None:
+        while True:
+            try:
+                job = self._writes.get(timeout=1.0)
+            except queue.Empty:
+                with self.lock:
+                    if self._writes.empty():
+                        self._writer = None  # idle: end; the next shot starts a new writer
+                        return
+                continue
+            try:
+                self._write_shot(*job)
+            finally:
+                self._writes.task_done()
+
     def _write_shot(self, index: int, handle: int, files: tuple, to_ram: bool) -> None:
-        with self._write_lock:  # one frame is processed at a time, in order
-            name, data = self._take_frame(index)
-            made = [(name, data)]
-            if len(files) == 2:
-                made.append(jpeg_twin(name, index))
-            if self.shot_delay_s:
-                time.sleep(self.shot_delay_s)
+        name, data = self._take_frame(index)
+        made = [(name, data)]
+        if len(files) == 2:
+            made.append(jpeg_twin(name, index))
+        if self.shot_delay_s:
+            time.sleep(self.shot_delay_s)
         stamp = time.strftime("%Y%m%dT%H%M%S")
         with self.lock:
             events: list[EosEvent] = []
