@@ -25,7 +25,7 @@ from mca.capture.api import LoadedInput, read_input  # the input's own facts liv
 from mca.capture.raw import IMAGE_EXTENSIONS, RAW_EXTENSIONS
 from mca.processing.camera import CameraProfile
 from mca.processing.colour import CameraColour
-from mca.processing.pinhole import SCENE_FRAME, PinholeCamera, processing_pixel_centres
+from mca.processing.pinhole import SCENE_FRAME, PinholeCamera
 from mca.processing.result import DepthResult
 
 SUPPORTED_SUFFIXES = frozenset(RAW_EXTENSIONS) | frozenset(IMAGE_EXTENSIONS)  # what `read_raw` reads
@@ -88,19 +88,11 @@ def scene_points(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Coloured scene-frame points (metres, glTF axes) of every known-depth pixel, on a regular stride.
 
-    The stride is the smallest that leaves at most `max_points`; scene.ply and the recording's point
-    cloud are both made here, so they agree point for point where their strides agree.
+    The stride is the smallest that leaves at most `max_points` (`PinholeCamera.depth_map_points`, which
+    the recording's point cloud uses too, so the two agree point for point where their strides agree).
     """
-    valid = np.isfinite(depth_mm) & (depth_mm > 0)
-    stride = max(1, math.ceil(math.sqrt(int(valid.sum()) / max_points)))
-    while int(valid[::stride, ::stride].sum()) > max_points:
-        stride += 1
-    sub = valid[::stride, ::stride]
-    rows, cols = np.nonzero(sub)
-    rows, cols = rows * stride, cols * stride
-    u, v = processing_pixel_centres(rows, cols, pixel_scale)
-    points = camera.back_project_scene_m(u, v, depth_mm[rows, cols].astype(np.float64))
-    return points.astype(np.float32), colours_rgb8[rows, cols]
+    points, rows, cols = camera.depth_map_points(depth_mm, pixel_scale, max_points)
+    return points, colours_rgb8[rows, cols]
 
 
 def _alpha8(alpha: np.ndarray) -> np.ndarray:

@@ -49,6 +49,16 @@ def processing_pixel_centres(rows: np.ndarray, cols: np.ndarray, pixel_scale: fl
     return u, v
 
 
+def strided_pixels(valid: np.ndarray, max_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cols) of the True pixels of `valid` on the smallest regular stride that leaves at most `max_points`."""
+    count = int(valid.sum())
+    stride = max(1, math.ceil(math.sqrt(count / max(max_points, 1))))
+    while int(valid[::stride, ::stride].sum()) > max_points:
+        stride += 1
+    rows, cols = np.nonzero(valid[::stride, ::stride])
+    return rows * stride, cols * stride
+
+
 @dataclass(frozen=True)
 class PinholeCamera:
     """The camera of one input image: focal length in input pixels and the image size."""
@@ -93,6 +103,17 @@ class PinholeCamera:
     def back_project_scene_m(self, u_px: np.ndarray, v_px: np.ndarray, z_mm: np.ndarray) -> np.ndarray:
         """(N, 3) scene-frame points in metres (glTF axes) of pixels (u, v) at distances z (mm)."""
         return optical_mm_to_scene_m(self.back_project_mm(u_px, v_px, z_mm))
+
+    def depth_map_points(
+        self, depth_mm: np.ndarray, pixel_scale: float, max_points: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Scene-frame points (float32 metres) of the known-depth pixels of a processing-resolution depth map,
+        on a regular stride (`strided_pixels`), with their (rows, cols)."""
+        depth = np.asarray(depth_mm)
+        rows, cols = strided_pixels(np.isfinite(depth) & (depth > 0), max_points)
+        u, v = processing_pixel_centres(rows, cols, pixel_scale)
+        points = self.back_project_scene_m(u, v, depth[rows, cols].astype(np.float64))
+        return points.astype(np.float32), rows, cols
 
     def project_scene_m(self, points_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(u, v) pixel coordinates of scene-frame points (the inverse of `back_project_scene_m`)."""
