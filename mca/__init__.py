@@ -39,7 +39,19 @@ _EXPORTS = {
     "PinholeCamera": "mca.processing.pinhole",
 }
 
-__all__ = ["__version__", *sorted(_EXPORTS)]
+__all__ = [
+    "CameraColour",
+    "CameraProfile",
+    "DepthResult",
+    "PinholeCamera",
+    "RawFrame",
+    "RawReadError",
+    "__version__",
+    "depth_from_file",
+    "depth_from_frame",
+    "load_profile",
+    "read_raw",
+]
 
 if TYPE_CHECKING:
     from mca.capture.api import depth_from_file, depth_from_frame

@@ -53,7 +53,7 @@ def test_camera_matrix_is_what_libraw_applies(tmp_path: Path) -> None:
     Three flat patches are developed by LibRaw twice over: linear, no white balance, sRGB output. The
     3x3 map from the patches' raw values to LibRaw's sRGB values is LibRaw's rgb_cam (up to one scale).
     """
-    black, span = 2048, 15000 - 2048
+    span = 15000 - 2048  # white - black level of `_mosaic`
     patches = [(0.30, 0.30, 0.30), (0.36, 0.30, 0.27), (0.27, 0.30, 0.35)]
     raw_values, developed = [], []
     for index, rgb in enumerate(patches):
