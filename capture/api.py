@@ -124,7 +124,7 @@ def resolve_profile(profile: str | os.PathLike[str] | CameraProfile) -> CameraPr
         return profile
     from mca.capture.profiles import load_profile
 
-    return load_profile(profile)
+    return load_profile(os.fspath(profile))
 
 
 def optics_for(profile: CameraProfile, loaded: LoadedInput) -> MCAOptics | None:

@@ -286,7 +286,7 @@ def _entropy_coded_scan(rows: np.ndarray, components: int, precision: int) -> tu
         total_bits = sum(block_bits)
         out = np.zeros((total_bits + 31) // 32 + 1, dtype=np.uint32)
         jobs = [(d, s, b) for (d, s, _), b in zip(blocks, start_bits)]
-        for first, words in pool.map(lambda job: _pack_block(*job, code_of, len_of), jobs):
+        for first, words in pool.map(lambda job: _pack_block(job[0], job[1], job[2], code_of, len_of), jobs):
             out[first : first + words.size] |= words
     data = out.astype(">u4").view(np.uint8)[: (total_bits + 7) // 8].copy()
     if total_bits & 7:
@@ -629,6 +629,8 @@ def cr2_bytes(
         import cv2  # only for the size of the preview JPEG
 
         decoded = cv2.imdecode(np.frombuffer(big, np.uint8), cv2.IMREAD_UNCHANGED)
+        if decoded is None:
+            raise ValueError("the preview JPEG just encoded could not be decoded")
         ifd0[-5] = _longs(0x0100, [decoded.shape[1]])
         ifd0[-4] = _longs(0x0101, [decoded.shape[0]])
         blobs.update(preview=big, thumb=thumb, small=small.tobytes())
@@ -704,4 +706,4 @@ def write_cr2(
     )
     from mca.capture.outputs import write_bytes_atomic
 
-    return write_bytes_atomic(path, data)
+    return write_bytes_atomic(Path(path), data)

@@ -95,7 +95,7 @@ def _png_scanlines(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     rows = samples.reshape(samples.shape[0], -1).view(np.uint8)
     height, width = rows.shape
     words = rows.view(np.uint64) if width % 8 == 0 else rows
-    zero = ~words.any(axis=1)
+    zero = np.asarray(~words.any(axis=1), dtype=bool)
     lines = np.zeros((height, width + 1), np.uint8)
     filled = np.flatnonzero(~zero)
     if filled.size:
@@ -128,9 +128,9 @@ def _deflate_zlib(lines: np.ndarray, zero_rows: np.ndarray) -> bytes:
             parts.append(_deflated_zeros(segment.nbytes))
             continue
         compressor = zlib.compressobj(PNG_DEFLATE_LEVEL, zlib.DEFLATED, -15, 9, zlib.Z_RLE)
-        parts.append(compressor.compress(segment) + compressor.flush(zlib.Z_FULL_FLUSH))
+        parts.append(compressor.compress(segment.tobytes()) + compressor.flush(zlib.Z_FULL_FLUSH))
     parts.append(b"\x03\x00")  # empty final fixed-Huffman block
-    parts.append(struct.pack(">I", zlib.adler32(lines)))
+    parts.append(struct.pack(">I", zlib.adler32(lines.data)))
     return b"".join(parts)
 
 
@@ -336,7 +336,7 @@ def encode_ply(points_mm: np.ndarray, colours_rgb8: np.ndarray, comments: tuple[
     header += [f"comment {c}" for c in comments]
     header += [f"element vertex {len(points)}"]
     header += [
-        f"property {'float' if vertices.dtype[name].kind == 'f' else 'uchar'} {name}" for name in PLY_VERTEX.names
+        f"property {'float' if vertices.dtype[name].kind == 'f' else 'uchar'} {name}" for name in PLY_VERTEX.names or ()
     ]
     header += ["end_header"]
     return ("\n".join(header) + "\n").encode("ascii") + vertices.tobytes()

@@ -220,9 +220,10 @@ def region_quads(
         u = np.array([left, right, right, left])
         v = np.array([top, top, bottom, bottom])
         distances = np.full(4, float(z))
-        slanted = region.slant is not None and distance_mm_of is not None
-        if slanted:
-            a, b, c = region.slant  # type: ignore[misc]
+        slanted = False
+        if region.slant is not None and distance_mm_of is not None:
+            slanted = True
+            a, b, c = region.slant
             corner_distances = np.asarray(distance_mm_of(a * u + b * v + c), dtype=np.float64)
             if np.all(np.isfinite(corner_distances)) and np.all(corner_distances > 0):
                 distances = corner_distances

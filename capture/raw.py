@@ -527,21 +527,23 @@ def _read_tiff_structure(p: Path, kind: str) -> _Tiff:
 def _libraw_failure(p: Path, kind: str, e: Exception) -> RawReadError:
     name = type(e).__name__
     detail = e.args[0] if e.args else ""
-    e = detail.decode("utf-8", "replace") if isinstance(detail, bytes) else str(detail or name)
+    message = detail.decode("utf-8", "replace") if isinstance(detail, bytes) else str(detail or name)
     if "Unsupported" in name:
         return RawReadError(
             p,
-            f"is not a raw format LibRaw can decode ({kind.upper()}; LibRaw: {e})",
+            f"is not a raw format LibRaw can decode ({kind.upper()}; LibRaw: {message})",
             "Convert it to DNG or 16-bit linear TIFF, or check that it really is a camera raw",
         )
     if "IO" in name or "Data" in name:
         return RawReadError(
             p,
-            f"raw data could not be decoded ({name}: {e}); the file is probably truncated or damaged",
+            f"raw data could not be decoded ({name}: {message}); the file is probably truncated or damaged",
             "Copy the photograph from the camera again",
         )
     return RawReadError(
-        p, f"LibRaw could not read it ({name}: {e})", "Copy the photograph from the camera again, or convert it to DNG"
+        p,
+        f"LibRaw could not read it ({name}: {message})",
+        "Copy the photograph from the camera again, or convert it to DNG",
     )
 
 
@@ -746,7 +748,7 @@ def _read_tiff(p: Path) -> RawFrame:
         with tifffile.TiffFile(p) as tf:
             page = tf.pages[0]
             arr = page.asarray()
-            if arr.ndim == 3 and page.planarconfig == tifffile.PLANARCONFIG.SEPARATE:
+            if arr.ndim == 3 and getattr(page, "planarconfig", None) == tifffile.PLANARCONFIG.SEPARATE:
                 arr = np.moveaxis(arr, 0, -1)
     except (tifffile.TiffFileError, ValueError, OSError, MemoryError) as e:
         raise RawReadError(

@@ -775,14 +775,14 @@ class RerunRecorder:
             window = windows.get(layer.region_id) or opaque_window(np.asarray(layer.rgba)[..., 3])
             if window is None:
                 continue
-            rows, cols = window
+            window_rows, window_cols = window
             distance_mm_at = _surface_distance(region, distance_mm, optics)
             vertices, triangles, colours = plane_mesh(
                 layer_rgba_crop(layer, window),
                 distance_mm_at,
                 camera,
                 scale,
-                origin_px=(cols.start, rows.start),
+                origin_px=(window_cols.start, window_rows.start),
                 full_width_px=result.labels.shape[1],
                 colour=self._colour,
             )

@@ -150,7 +150,7 @@ def camera_colour(
         if m.shape == (3, 3) and np.isfinite(m).all() and np.abs(m).sum() > 0:
             try:
                 inverse = camera_to_srgb_from_xyz(m)
-                matrix = tuple(tuple(float(v) for v in row) for row in inverse)  # type: ignore[assignment]
+                matrix = tuple((float(row[0]), float(row[1]), float(row[2])) for row in inverse)
                 notes.append("colour matrix")
             except (ValueError, np.linalg.LinAlgError):
                 pass

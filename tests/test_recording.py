@@ -15,8 +15,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import rerun as rr
 import pytest
+import rerun as rr
 
 from mca.capture.profiles import load_profile
 from mca.capture.recording import (

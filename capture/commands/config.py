@@ -27,7 +27,7 @@ def register(app: typer.Typer) -> None:
             config = load_config()
         except ConfigError as exc:
             typer.echo(f"error: {exc}", err=True)
-            raise typer.Exit(2)
+            raise typer.Exit(2) from None
         if as_json:
             typer.echo(
                 json.dumps(

@@ -92,18 +92,19 @@ def register(app: typer.Typer) -> None:
             profile, workers, out = chosen["profile"], chosen["workers"], chosen["output_dir"]
         except ConfigError as exc:
             typer.echo(f"error: {exc}", err=True)
-            raise typer.Exit(2)
+            raise typer.Exit(2) from None
         try:
             camera_profile = resolve_profile(str(profile))
         except ProfileError as exc:
             typer.echo(f"error: {exc}", err=True)
-            raise typer.Exit(2)
+            raise typer.Exit(2) from None
         if out.exists() and not out.is_dir():
             typer.echo(f"error: --out {out} is a file; give a folder for the outputs", err=True)
             raise typer.Exit(2)
         if record is not None and record.suffix != ".rrd":
             typer.echo(f"error: --record {record}: give a .rrd file name", err=True)
             raise typer.Exit(2)
+        progress: SilentProgress | RichProgress | LineProgress
         if quiet:
             progress = SilentProgress()
         elif sys.stdout.isatty():
@@ -143,7 +144,7 @@ def register(app: typer.Typer) -> None:
             typer.echo(f"error: {exc}", err=True)
             if live is not None:
                 live.close()
-            raise typer.Exit(2)
+            raise typer.Exit(2) from None
         print_summary(report)
         if live is not None:
             import time
