@@ -165,3 +165,14 @@ def test_khronos_gltf_validator_finds_no_error(capture) -> None:
     assert out.returncode == 0, out.stderr
     issues = json.loads(out.stdout)
     assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"]
+
+
+def test_the_catalog_names_the_software_that_wrote_it(tmp_path) -> None:
+    import sqlite3
+
+    from mca.capture.catalog import Catalog
+
+    Catalog(tmp_path / "catalog.sqlite").close()
+    with sqlite3.connect(tmp_path / "catalog.sqlite") as db:
+        assert db.execute("PRAGMA integrity_check").fetchone() == ("ok",)
+        assert db.execute("SELECT version FROM software WHERE name = 'mca-appliance'").fetchone() == (mca.__version__,)
