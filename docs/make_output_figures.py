@@ -84,16 +84,18 @@ def render_glb(path: Path, size: tuple[int, int] = (900, 600), yaw_deg: float = 
     every = np.vstack([c for c, _ in quads])
     centre = (every.min(axis=0) + every.max(axis=0)) / 2
     yaw, pitch = math.radians(yaw_deg), math.radians(pitch_deg)
-    rotation = np.array(
-        [[math.cos(yaw), 0, math.sin(yaw)], [0, 1, 0], [-math.sin(yaw), 0, math.cos(yaw)]]
-    ) @ np.array([[1, 0, 0], [0, math.cos(pitch), -math.sin(pitch)], [0, math.sin(pitch), math.cos(pitch)]])
+    rotation = np.array([[math.cos(yaw), 0, math.sin(yaw)], [0, 1, 0], [-math.sin(yaw), 0, math.cos(yaw)]]) @ np.array(
+        [[1, 0, 0], [0, math.cos(pitch), -math.sin(pitch)], [0, math.sin(pitch), math.cos(pitch)]]
+    )
     eye = centre + rotation @ np.array([0.0, 0.0, -centre[2]])  # as far from the centre as the camera was
     width, height = size
     focal = 1.1 * width
 
     def project(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         local = (points - eye) @ rotation  # the viewer's frame: x right, y up, looking down -z
-        return np.stack([width / 2 + focal * local[:, 0] / -local[:, 2], height / 2 - focal * local[:, 1] / -local[:, 2]], 1), -local[:, 2]
+        return np.stack(
+            [width / 2 + focal * local[:, 0] / -local[:, 2], height / 2 - focal * local[:, 1] / -local[:, 2]], 1
+        ), -local[:, 2]
 
     canvas = np.full((height, width, 3), 40.0)
     for corners, texture in sorted(quads, key=lambda q: -project(q[0])[1].mean()):
@@ -106,7 +108,16 @@ def render_glb(path: Path, size: tuple[int, int] = (900, 600), yaw_deg: float = 
         canvas = canvas * (1 - alpha) + warped[..., :3].astype(np.float64) * alpha
         cv2.polylines(canvas, [np.round(image_points).astype(np.int32)], True, (200, 200, 200), 1, cv2.LINE_AA)
     image = canvas.astype(np.uint8)
-    cv2.putText(image, f"scene.glb, viewed {yaw_deg:.0f} deg to the left, {pitch_deg:.0f} deg above", (10, 22), 0, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
+    cv2.putText(
+        image,
+        f"scene.glb, viewed {yaw_deg:.0f} deg to the left, {pitch_deg:.0f} deg above",
+        (10, 22),
+        0,
+        0.6,
+        (255, 255, 255),
+        1,
+        cv2.LINE_AA,
+    )
     return image
 
 
