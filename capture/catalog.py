@@ -54,8 +54,21 @@ def open_database(path: Path, schema: str) -> sqlite3.Connection:
     db = sqlite3.connect(str(path))
     db.execute("PRAGMA journal_mode=WAL")
     db.executescript(schema)
+    record_software(db)
     db.commit()
     return db
+
+
+def record_software(db: sqlite3.Connection) -> None:
+    """Note in the catalog which software version last wrote to it (table `software`, one row per name)."""
+    from mca import __version__
+
+    db.execute("CREATE TABLE IF NOT EXISTS software (name TEXT PRIMARY KEY, version TEXT NOT NULL, seen_at TEXT)")
+    db.execute(
+        "INSERT INTO software (name, version, seen_at) VALUES ('mca-appliance', ?, ?) "
+        "ON CONFLICT(name) DO UPDATE SET version = excluded.version, seen_at = excluded.seen_at",
+        (__version__, _now()),
+    )
 
 
 class Catalog:

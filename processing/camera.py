@@ -142,7 +142,7 @@ def _crosstalk(table: Mapping[str, Any], source: str) -> tuple[tuple[float, floa
     field = "aperture.crosstalk"
     if not isinstance(value, (list, tuple)) or len(value) != 3:
         raise ProfileError(field, "must be a 3x3 matrix [[..],[..],[..]] (sensor channel <- filter)", source)
-    rows = []
+    rows: list[tuple[float, float, float]] = []
     for row in value:
         if (
             not isinstance(row, (list, tuple))
@@ -150,7 +150,7 @@ def _crosstalk(table: Mapping[str, Any], source: str) -> tuple[tuple[float, floa
             or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in row)
         ):
             raise ProfileError(field, f"each row must hold three numbers, got {row!r}", source)
-        rows.append(tuple(float(v) for v in row))
+        rows.append((float(row[0]), float(row[1]), float(row[2])))
     a = rows
     det = (
         a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1])
@@ -159,7 +159,7 @@ def _crosstalk(table: Mapping[str, Any], source: str) -> tuple[tuple[float, floa
     )
     if abs(det) < 1e-6:
         raise ProfileError(field, "is singular: the channels could not be separated", source)
-    return tuple(rows)  # type: ignore[return-value]
+    return (rows[0], rows[1], rows[2])
 
 
 def profile_from_mapping(data: Mapping[str, Any], source: str = "<profile>") -> CameraProfile:
@@ -210,8 +210,9 @@ def profile_from_mapping(data: Mapping[str, Any], source: str = "<profile>") -> 
                 )
             sensor = focal * focus / (focus - focal)
         else:
-            sensor = _number(lens_table, "sensor_distance_mm", "lens.sensor_distance_mm", source)
-            assert sensor is not None
+            given = _number(lens_table, "sensor_distance_mm", "lens.sensor_distance_mm", source)
+            assert given is not None
+            sensor = given
             if sensor <= focal:
                 raise ProfileError(
                     "lens.sensor_distance_mm",

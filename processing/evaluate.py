@@ -164,9 +164,16 @@ class Summary:
 def summarise(evaluations: list[SceneEvaluation], methods: list[str]) -> Summary:
     median, worst, focus = {}, {}, {}
     for m in methods:
-        rel = [r.rel_error(m) for e in evaluations for r in e.rows if r.rel_error(m) is not None]
-        rel = [v if np.isfinite(v) else np.inf for v in rel]
-        foc = [r.abs_error_mm(m) for e in evaluations for r in e.rows if r.rel_error(m) is None]
+        known = [r.rel_error(m) for e in evaluations for r in e.rows]
+        rel = [float(v) if np.isfinite(v) else np.inf for v in known if v is not None]
+        foc = [
+            float(v)
+            for e in evaluations
+            for r in e.rows
+            if r.rel_error(m) is None
+            for v in [r.abs_error_mm(m)]
+            if v is not None
+        ]
         median[m] = float(np.median(rel)) if rel else float("nan")
         worst[m] = float(np.max(rel)) if rel else float("nan")
         focus[m] = float(np.max(foc)) if foc else float("nan")

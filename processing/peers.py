@@ -38,7 +38,7 @@ def sgbm_disparity(
     right = cv2.warpAffine(_to_uint8(planes[..., order[second]]), rotate, (width, height), flags=cv2.INTER_LINEAR)
     low = int(math.floor(range_px[0])) - 1
     count = int(math.ceil((range_px[1] - low + 1) / 16.0)) * 16
-    matcher = cv2.StereoSGBM_create(
+    matcher = cv2.StereoSGBM_create(  # type: ignore[attr-defined,unused-ignore]
         minDisparity=low,
         numDisparities=count,
         blockSize=block_px,
