@@ -86,7 +86,7 @@ def _codes(values: tuple[int, ...], label) -> list[str]:
 
 
 def _value_text(prop: int, value: int, raw: bytes) -> str:
-    tables = {
+    tables: dict[int, dict[int, str]] = {
         EosProp.ISO_SPEED: EOS_ISO,
         EosProp.SHUTTER_SPEED: EOS_SHUTTER,
         EosProp.APERTURE: EOS_APERTURE,
@@ -180,8 +180,8 @@ def diagnose(cam: Camera, *, usb_ids: tuple[int, int] | None = None, live_view: 
         ):
             if prop in values:
                 v = values[prop]
-                allowed = lists.get(prop)
-                count = f", {len(allowed.raw_values or allowed.values)} allowed" if allowed else ""
+                listed = lists.get(prop)
+                count = f", {len(listed.raw_values or listed.values)} allowed" if listed else ""
                 add(f"    {prop_name(prop)}: {_value_text(prop, v.value, v.raw)}{count}")
             else:
                 add(f"    {prop_name(prop)}: not reported")

@@ -57,7 +57,7 @@ def _band_pass(plane: np.ndarray, params: LivePreviewParams) -> np.ndarray:
 
 def _shifted(plane: np.ndarray, dx: float, dy: float) -> np.ndarray:
     """`plane` sampled at (x + dx, y + dy); borders replicate."""
-    m = np.float32([[1, 0, dx], [0, 1, dy]])
+    m = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy]], dtype=np.float32)
     return cv2.warpAffine(
         plane,
         m,

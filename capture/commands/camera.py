@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import typer
 
@@ -35,9 +36,9 @@ def list_cameras(sim: bool = typer.Option(False, "--sim", help="also list the si
     from mca.devices.ptp.transport import TransportError
     from mca.devices.ptp.transport_usb import find_cameras
 
-    found = []
+    found: list[Any] = []
     try:
-        found = find_cameras()
+        found = list(find_cameras())
     except TransportError as exc:
         typer.echo(f"warning: {exc}", err=True)
     if sim:
@@ -46,7 +47,7 @@ def list_cameras(sim: bool = typer.Option(False, "--sim", help="also list the si
         found += [
             dict(port="sim", manufacturer=c.manufacturer, product=c.product, serial_number=c.serial_number)
             for c in find_cameras(make_sim_rig().backend)
-        ]  # type: ignore[misc]
+        ]
     if not found:
         typer.echo("no PTP camera found (switch it on and connect it; `--camera sim` uses the simulated one)")
         return
@@ -106,7 +107,7 @@ def config(
     try:
         if action == "set":
             try:
-                pv = cam.set_property(name, value)  # type: ignore[arg-type]
+                pv = cam.set_property(str(name), str(value))
             except (UnknownPropertyName, PropertyNotReported, ValueError, PtpError) as exc:
                 typer.echo(f"error: {exc}", err=True)
                 raise typer.Exit(2) from exc
@@ -115,7 +116,7 @@ def config(
         names = [name] if name else list(PROPERTIES)
         for n in names:
             try:
-                pv = cam.get_property(n)  # type: ignore[arg-type]
+                pv = cam.get_property(n)
             except (UnknownPropertyName, PropertyNotReported) as exc:
                 if name:
                     typer.echo(f"error: {exc}", err=True)

@@ -624,7 +624,8 @@ class Camera:
 
     def _claim(self, exclude: frozenset[int] | None = None) -> list[CapturedObject]:
         """Take the new-file events out of the pending list (folders and `exclude`d handles skipped)."""
-        found, rest = [], []
+        found: list[CapturedObject] = []
+        rest: list[EosEvent] = []
         for e in self._pending:
             if isinstance(e, EosObjectAdded):
                 if e.object_format == ObjectFormat.ASSOCIATION or (exclude and e.handle in exclude):
@@ -1068,10 +1069,11 @@ class Camera:
             return self.get_property(spec.name)
         desc = self.prop_desc(spec.std_code)  # type: ignore[arg-type]
         try:
-            raw: int | str = wanted if desc.datatype == 0xFFFF else int(wanted, 0)
+            std_value: int | str = wanted if desc.datatype == 0xFFFF else int(wanted, 0)
         except ValueError as exc:
             raise ValueError(f"{spec.name} takes a number on {self.name}, got {wanted!r}") from exc
-        self._call(Op.SET_DEVICE_PROP_VALUE, (spec.std_code,), data_out=pack_prop_value(desc.datatype, raw))  # type: ignore[arg-type]
+        data_out = pack_prop_value(desc.datatype, std_value)
+        self._call(Op.SET_DEVICE_PROP_VALUE, (spec.std_code,), data_out=data_out)  # type: ignore[arg-type]
         return self.get_property(spec.name)
 
     # -- what the body reported (for `mca camera doctor`) ---------------

@@ -17,7 +17,7 @@ from mca.devices.ptp.codec import (
 )
 from mca.devices.ptp.codes import DataType
 
-_SCALAR_FORMATS = {
+_SCALAR_FORMATS: dict[int, str] = {
     DataType.INT8: "b",
     DataType.UINT8: "B",
     DataType.INT16: "h",

@@ -240,12 +240,12 @@ def _parse_avail_list(r: Reader) -> EosAvailListChanged:
         items = Reader(rest)
         if count > len(rest) // (4 + IMAGE_FORMAT_ENTRY_BYTES):
             raise ProtocolError(f"AvailListChanged claims {count} image formats in {len(rest)} bytes")
-        raws = []
+        formats = []
         for _ in range(count):
             start = items.pos
             parse_image_format(items)
-            raws.append(rest[start : items.pos])
-        return EosAvailListChanged(prop, kind, tuple(range(len(raws))), tuple(raws))
+            formats.append(rest[start : items.pos])
+        return EosAvailListChanged(prop, kind, tuple(range(len(formats))), tuple(formats))
     if kind != AVAIL_LIST_ENUM or count == 0:
         return EosAvailListChanged(prop, kind, (), (rest,) if rest else ())
     if count > len(rest):

@@ -340,7 +340,7 @@ def printed_events(lines: list[str], start: int, end: int) -> list[PrintedEvent]
                     propxtype=int(desc.group(4)),
                     suppvals=[],
                 )
-            else:  # "unknown EOS event c1f6" gives the code; "unhandled EOS event PowerZoomInfoChanged" a name (-1)
+            elif unknown:  # "unknown EOS event c1f6" gives the code; "unhandled EOS event PowerZoomInfoChanged" a name
                 code = int(unknown.group(1), 16) if re.fullmatch(r"[0-9a-f]{4}", unknown.group(1)) else -1
                 records[idx] = dict(line=n + 1, index=idx, kind="unknown", prop=code)
             order.append(idx)
@@ -353,10 +353,7 @@ def printed_events(lines: list[str], start: int, end: int) -> list[PrintedEvent]
             records[idx]["current"] = cur.group(2)
         elif sup:
             records[idx]["suppvals"].append(int(sup.group(3), 16))
-    return [
-        PrintedEvent(**{**records[i], "suppvals": tuple(records[i].get("suppvals", ()))})
-        for i in order  # type: ignore[arg-type]
-    ]
+    return [PrintedEvent(**{**records[i], "suppvals": tuple(records[i].get("suppvals", ()))}) for i in order]
 
 
 @dataclass(frozen=True)
@@ -430,7 +427,12 @@ class ReplayResponder:
         self.busy_responses = 0
         self.short_partial_bytes = 0
         self.serial_number = serial_number or "REPLAY"
-        self._data_out_ops = {t.command.code for ts in self._by_code.values() for t in ts if t.data_out is not None}
+        self._data_out_ops = {
+            t.command.code
+            for ts in self._by_code.values()
+            for t in ts
+            if t.command is not None and t.data_out is not None
+        }
         self._data_out_ops |= {Op.SET_DEVICE_PROP_VALUE, Op.EOS_SET_DEVICE_PROP_VALUE_EX}
         self._model = "replayed camera"
 

@@ -194,7 +194,9 @@ class UsbTransport(Transport):
             )
             raise TransportError(f"could not claim {self.name}: {exc}; {hint}") from exc
         self.interface_number = info.interface_number
-        self.ep_in = self.ep_out = self.ep_int = None
+        self.ep_in: Any = None
+        self.ep_out: Any = None
+        self.ep_int: Any = None
         for ep in intf:
             kind = usb.util.endpoint_type(ep.bmAttributes)
             is_in = usb.util.endpoint_direction(ep.bEndpointAddress) == usb.util.ENDPOINT_IN

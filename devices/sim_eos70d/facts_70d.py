@@ -350,7 +350,7 @@ EX_UNKNOWN = (0x0000, 0x0001, 0x0002, 0x0004, 0x0008)
 
 #: Standard property descriptions (GetDevicePropDesc): code, datatype, writable, value, enumeration.
 #: BatteryLevel is declared UINT8 but its enumeration comes as 16-bit words (the 60D trace shows the bytes).
-STD_PROPS = {
+STD_PROPS: dict[int, tuple[int, bool, int | str, tuple[int, ...]]] = {
     0xD049: (0x0006, False, 0x80000325, ()),
     0xD402: (0xFFFF, False, "Canon EOS 70D", ()),
     0xD407: (0x0006, False, 1, ()),

@@ -400,7 +400,7 @@ class SimEos70D:
         if entry is None:
             return None
         datatype, writable, value, enum = entry
-        if code == 0x5001:
+        if code == 0x5001 and isinstance(value, int):
             head = struct.pack("<HHB", code, datatype, int(writable)) + bytes([value, value])
             return head + b"\x02" + struct.pack(f"<H{len(enum)}H", len(enum), *enum)
         return pack_prop_desc(DevicePropDesc(code, datatype, writable, value, value))
@@ -700,7 +700,11 @@ class SimEos70D:
                 if entry is None:
                     return fail(Resp.DEVICE_PROP_NOT_SUPPORTED)
                 datatype, _writable, value, _enum = entry
-                raw = pack_string(value) if datatype == 0xFFFF else struct.pack("<I" if datatype == 6 else "<B", value)
+                raw = (
+                    pack_string(str(value))
+                    if datatype == 0xFFFF
+                    else struct.pack("<I" if datatype == 6 else "<B", int(value))
+                )
                 return ok(data=raw)
             if code == MTP_GET_OBJECT_PROPS_SUPPORTED:  # the 70D lists MTP's 0x9801; it offers none here
                 return ok(data=pack_array("H", []))

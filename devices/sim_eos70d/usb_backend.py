@@ -92,7 +92,7 @@ class SimUsbBackend(usb.backend.IBackend):
         self.device_id: _DeviceId | None = _DeviceId(bus, address)
         self.configuration = 0
         self._out = bytearray()
-        self._pending_cmd = None
+        self._pending_cmd: Any = None
         self._in: deque[_Transfer] = deque()
         self._lock = threading.RLock()
         self._stalled = False
