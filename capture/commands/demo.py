@@ -56,7 +56,13 @@ def register(app: typer.Typer) -> None:
         Fig. 4 scenes through the MCA lens simulator, so each shot has a known ground truth.
         """
         from mca.capture.config import ConfigError, fill_from_config
-        from mca.capture.tether import TetherSession, camera_factory, default_sim_frame_source, make_sim_rig
+        from mca.capture.tether import (
+            TetherError,
+            TetherSession,
+            camera_factory,
+            default_sim_frame_source,
+            make_sim_rig,
+        )
         from mca.devices.ptp.transport import TransportError
 
         try:
@@ -85,20 +91,23 @@ def register(app: typer.Typer) -> None:
             factory = camera_factory(spec)
             typer.echo(f"camera: {spec}", err=True)
 
-        out.mkdir(parents=True, exist_ok=True)
         recording = out / "demo.rrd"
-        session = TetherSession(
-            factory,
-            out / "shots",
-            process=True,
-            profile=profile,
-            record=recording,
-            log=lambda m: typer.echo(f"  {m}", err=True),
-        )
+        try:
+            session = TetherSession(
+                factory,
+                out / "shots",
+                process=True,
+                profile=profile,
+                record=recording,
+                log=lambda m: typer.echo(f"  {m}", err=True),
+            )
+        except TetherError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(2) from exc
         try:
             session.connect()
             results = session.capture(count, 0.0)
-        except TransportError as exc:
+        except (TransportError, TetherError) as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(1) from exc
         finally:
