@@ -540,9 +540,8 @@ def render_rgbd_tree(
                         factor = profile.width_px / cropped_w
                         source = resize_rgbd(source, factor, crop_aspect=aspect)
                     else:
-                        factor = (
-                            scale if scale is not None else min(1.0, (max_side_px or 10**9) / max(source.valid.shape))
-                        )
+                        width = source.valid.shape[1]
+                        factor = scale if scale is not None else (width_px / width if width_px else 1.0)
                         source = resize_rgbd(source, factor)
                     # one stream per (scene, seed): a scene's draw does not depend on which others are rendered
                     rng = np.random.default_rng([seed, _stable_hash(folder.name)])
