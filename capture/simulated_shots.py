@@ -1,7 +1,9 @@
-"""Simulated photographs: render a scene through a profile's optics, package it as a CR2 and write its truth files.
+"""Simulated photographs: render a scene through a profile's optics, package it as a CR2 or TIFF, write its truth files.
 
 The simulated camera and the calibration sweep call `render_scene` and `capture_cr2_bytes`;
-`mca simulate` calls `write_capture`. Files are written atomically (temporary name in the
+`mca simulate` calls `write_capture` (paper scenes) and `render_rgbd_capture`/`write_rgbd_capture`/
+`render_rgbd_tree` (real photographs with known depth, `processing.render_rgbd`). Ground truth
+goes into a `truth/` subfolder beside the captures. Files are written atomically (temporary name in the
 destination folder, then `os.replace`).
 """
 
@@ -21,6 +23,7 @@ from mca.processing.simulate import Scene, SensorModel, SimulationOptics, render
 
 # Render sizes: the fraction of the profile's image size (pixel pitch scales to match).
 SIZES: dict[str, float] = {"full": 1.0, "small": 0.25}
+TRUTH_DIR = "truth"  # ground truth lives in this subfolder of a render folder, where `mca process DIR` never looks
 
 
 @dataclass
@@ -112,18 +115,20 @@ def truth_json(truth: dict[str, Any]) -> str:
 
 
 def write_capture(capture: SimulatedCapture, profile: CameraProfile, out_dir: str | Path) -> dict[str, Path]:
-    """Write `<scene>.CR2`, `<scene>.truth.json`, `<scene>.depth.tiff` and `<scene>.labels.png` into `out_dir`."""
+    """Write `<scene>.CR2` into `out_dir` and its truth into `out_dir/truth/`: `<scene>.truth.json`,
+    `<scene>.depth.tiff` and `<scene>.labels.png` (a subfolder, so that `mca process out_dir` sees only
+    photographs). The CR2 is written last."""
     import cv2
     import tifffile
 
     from mca.capture.outputs import write_bytes_atomic
 
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    truth_dir = out / TRUTH_DIR
+    truth_dir.mkdir(parents=True, exist_ok=True)
     name = capture.scene
     paths = {}
-    paths["cr2"] = write_bytes_atomic(out / f"{name}.CR2", capture_cr2_bytes(capture, profile))
-    paths["truth"] = write_bytes_atomic(out / f"{name}.truth.json", truth_json(capture.truth).encode("utf-8"))
+    paths["truth"] = write_bytes_atomic(truth_dir / f"{name}.truth.json", truth_json(capture.truth).encode("utf-8"))
     buffer = io.BytesIO()
     tifffile.imwrite(
         buffer,
@@ -131,17 +136,17 @@ def write_capture(capture: SimulatedCapture, profile: CameraProfile, out_dir: st
         compression="zlib",
         metadata={"unit": "mm", "what": "distance from the lens of the front-most surface"},
     )
-    paths["depth"] = write_bytes_atomic(out / f"{name}.depth.tiff", buffer.getvalue())
+    paths["depth"] = write_bytes_atomic(truth_dir / f"{name}.depth.tiff", buffer.getvalue())
     ok, png = cv2.imencode(".png", capture.labels.astype(np.uint16), [cv2.IMWRITE_PNG_COMPRESSION, 3])
     if not ok:
         raise OSError(f"could not encode the label image of scene '{name}' as PNG")
-    paths["labels"] = write_bytes_atomic(out / f"{name}.labels.png", png.tobytes())
+    paths["labels"] = write_bytes_atomic(truth_dir / f"{name}.labels.png", png.tobytes())
+    paths["cr2"] = write_bytes_atomic(out / f"{name}.CR2", capture_cr2_bytes(capture, profile))
     return paths
 
 
 # --- real photographs with known depth (RGB-D scenes, e.g. Middlebury) -------------------------------------------
 
-TRUTH_DIR = "truth"  # ground truth lives in this subfolder of a render folder, where `mca process DIR` never looks
 RGBD_FORMATS = ("tiff", "cr2")
 # The development set (docs/evaluation.md): tuned on the first group, figures reported on the second.
 DEV_TUNING_SCENES = ("Art", "Cones", "Dolls", "Laundry", "Moebius", "Venus")
