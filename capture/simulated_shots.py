@@ -318,24 +318,20 @@ def check_render_size(profile: CameraProfile, width_px: int, height_px: int, fmt
         raise ValueError(f"a CR2 needs at least 22x22 pixels, got {width_px}x{height_px}")
 
 
-def profile_toml(
-    profile: CameraProfile, sensor_distance_mm: float, pixel_pitch_mm: float, size: tuple[int, int]
-) -> str:
-    """A profile file for one render: the profile's lens focused as rendered, at the render's pitch and size."""
+def profile_toml(profile: CameraProfile, sensor_distance_mm: float) -> str:
+    """The profile as a file with its lens focused as rendered (d_ls); the camera's photosite pitch and size stay
+    the body's: `mca process` takes a render's pixel pitch from the file (its model and size)."""
     ap = profile.aperture
-    lines = [
-        f'name = "{profile.name}-render"',
-        "[camera]",
-        f'model = "{profile.model}"',
-        f"pixel_pitch_mm = {pixel_pitch_mm!r}",
-        f"width_px = {size[0]}",
-        f"height_px = {size[1]}",
-        "[lens]",
-        f"focal_length_mm = {profile.lens.focal_length_mm!r}" if profile.lens else "",
-        f"sensor_distance_mm = {sensor_distance_mm!r}",
-    ]
-    if profile.lens is not None and profile.lens.f_number is not None:
-        lines.append(f"f_number = {profile.lens.f_number!r}")
+    lines = [f'name = "{profile.name}-render"', "[camera]", f'model = "{profile.model}"']
+    if profile.pixel_pitch_mm is not None:
+        lines.append(f"pixel_pitch_mm = {profile.pixel_pitch_mm!r}")
+    if profile.width_px and profile.height_px:
+        lines += [f"width_px = {profile.width_px}", f"height_px = {profile.height_px}"]
+    if profile.lens is not None:
+        lines += ["[lens]", f"focal_length_mm = {profile.lens.focal_length_mm!r}"]
+        lines.append(f"sensor_distance_mm = {sensor_distance_mm!r}")
+        if profile.lens.f_number is not None:
+            lines.append(f"f_number = {profile.lens.f_number!r}")
     lines += [
         "[aperture]",
         f"filter_diameter_mm = {ap.filter_diameter_mm!r}",
@@ -345,7 +341,7 @@ def profile_toml(
     ]
     if ap.diameter_mm is not None:
         lines.append(f"diameter_mm = {ap.diameter_mm!r}")
-    return "\n".join(line for line in lines if line) + "\n"
+    return "\n".join(lines) + "\n"
 
 
 def render_rgbd_capture(
@@ -435,7 +431,7 @@ def render_rgbd_capture(
         distance_mm=rendering.distance_mm,
         disparity_px=rendering.disparity_px,
         truth=truth,
-        profile_toml=profile_toml(profile, optics.sensor_distance_mm, optics.pixel_pitch_mm, (w, h)),
+        profile_toml=profile_toml(profile, optics.sensor_distance_mm),
         seconds=time.perf_counter() - started,
     )
 
