@@ -45,12 +45,12 @@ class BandoRun:
 
 
 def find_bando(explicit: str | Path | None = None) -> Path | None:
-    """The program's path from `explicit`, else MCA_BANDO_BIN, when it is an executable file; else None."""
-    for candidate in (explicit, os.environ.get(ENV_VARIABLE)):
-        if candidate:
-            path = Path(candidate).expanduser()
-            if path.is_file() and os.access(path, os.X_OK):
-                return path
+    """The program at `explicit` when given, else at $MCA_BANDO_BIN, when that is an executable file; else None."""
+    candidate = explicit if explicit else os.environ.get(ENV_VARIABLE)
+    if candidate:
+        path = Path(candidate).expanduser()
+        if path.is_file() and os.access(path, os.X_OK):
+            return path
     return None
 
 
