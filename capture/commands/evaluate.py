@@ -32,6 +32,7 @@ def register(app: typer.Typer) -> None:
             None, "--bando", help="--rgbd: Bando et al. 2008's built program (default: $MCA_BANDO_BIN)."
         ),
         as_json: bool = typer.Option(False, "--json", help="--rgbd: print the figures as JSON."),
+        json_file: str = typer.Option(None, "--json-file", help="--rgbd: also write the JSON figures to this file."),
         keep_outputs: str = typer.Option(
             None, "--keep-outputs", help="--rgbd: keep mca process's output folders here."
         ),
@@ -45,7 +46,7 @@ def register(app: typer.Typer) -> None:
         scored per pixel (bad-1, bad-0.5, the same near depth edges, depth error, relative inter-object error,
         coverage) beside the colour-line WTA and Bando 2008's program; per scene, then median and worst."""
         if rgbd is not None:
-            _evaluate_rgbd(rgbd, peers, bando, as_json, keep_outputs, only)
+            _evaluate_rgbd(rgbd, peers, bando, as_json, keep_outputs, only, json_file)
             return
         import time
 
@@ -105,7 +106,13 @@ def register(app: typer.Typer) -> None:
 
 
 def _evaluate_rgbd(
-    root: str, peers: bool, bando: str | None, as_json: bool, keep_outputs: str | None, only: str | None
+    root: str,
+    peers: bool,
+    bando: str | None,
+    as_json: bool,
+    keep_outputs: str | None,
+    only: str | None,
+    json_file: str | None = None,
 ) -> None:
     import json
     import time
@@ -143,6 +150,10 @@ def _evaluate_rgbd(
         on_progress=progress,
     )
     typer.echo(f"evaluated {len(rows)} render(s) in {time.perf_counter() - started:.0f} s", err=True)
+    if json_file is not None:
+        from mca.capture.outputs import write_json
+
+        write_json(json_file, rgbd_report(rows, methods))
     if as_json:
         typer.echo(json.dumps(json_safe(rgbd_report(rows, methods)), indent=2))
         return
