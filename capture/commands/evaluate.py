@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import typer
 
 
@@ -17,6 +19,12 @@ def register(app: typer.Typer) -> None:
             "(1.0 = the full 20 MP; smaller is faster, less precise).",
         ),
         seed: int = typer.Option(0, "--seed", help="Seed of the simulated sensor noise."),
+        renders: str = typer.Option(
+            None,
+            "--renders",
+            help="Table 2: read the scenes from this folder of `mca simulate` renders (CR2 + truth/), rendering "
+            "and writing there the ones missing (a cache: same scale and seed).",
+        ),
         peers: bool = typer.Option(
             True,
             "--peers/--no-peers",
@@ -80,8 +88,12 @@ def register(app: typer.Typer) -> None:
         evaluations = []
         methods = ["ours"] + (["sgbm", "wta"] if peers else [])
         for name in names:
-            rendering = render(paper_scene(name, optics.focus_distance_mm), optics, sensor, seed=seed)
-            planes = bayer_planes(rendering.mosaic, sensor.black_level, sensor.white_level)
+            if renders is not None:
+                truth, truth_labels, planes = _cached_paper_scene(Path(renders), name, camera, optics, scale, seed)
+            else:
+                rendering = render(paper_scene(name, optics.focus_distance_mm), optics, sensor, seed=seed)
+                truth, truth_labels = rendering.truth, rendering.labels
+                planes = bayer_planes(rendering.mosaic, sensor.black_level, sensor.white_level)
             start = time.perf_counter()
             result = run_pipeline(
                 planes, optics.aperture, optics.mca, pixel_scale=2.0, channel_offsets_px=RGGB_HALF_RES_OFFSETS_PX
@@ -90,19 +102,46 @@ def register(app: typer.Typer) -> None:
             peer_maps = {}
             if peers:
                 aligned = align_channel_samples(planes, RGGB_HALF_RES_OFFSETS_PX)
-                low, high = default_disparity_range_px(optics.aperture, optics.mca, rendering.mosaic.shape)
+                low, high = default_disparity_range_px(optics.aperture, optics.mca, truth_labels.shape)
                 range_proc = (low / 2.0, high / 2.0)
                 peer_maps["sgbm"] = sgbm_disparity(aligned, optics.aperture, range_proc) * 2.0
                 peer_maps["wta"] = colour_line_wta(aligned, optics.aperture, range_proc) * 2.0
-            evaluations.append(
-                evaluate_scene(rendering.truth, rendering.labels, result, optics.mca, peer_maps, seconds)
-            )
+            evaluations.append(evaluate_scene(truth, truth_labels, result, optics.mca, peer_maps, seconds))
             typer.echo(f"{name}: {len(result.regions)} regions in {seconds:.2f} s", err=True)
         typer.echo(
             f"profile {camera.name}, render {optics.width_px}x{optics.height_px} (scale {scale}), "
             f"processing {optics.width_px // 2}x{optics.height_px // 2}; ΔD in mm, + = farther than focus"
         )
         typer.echo(format_table(evaluations, methods))
+
+
+def _cached_paper_scene(folder: Path, name: str, camera, optics, scale: float, seed: int):
+    """(truth, labels, half-resolution planes) of a paper scene from `folder` (CR2 + truth/, as `mca simulate`
+    writes them), rendered and written there first when missing or made with another size or seed."""
+    import json
+
+    import cv2
+    import numpy as np
+
+    from mca.capture.raw import read_raw
+    from mca.capture.simulated_shots import TRUTH_DIR, render_scene, write_capture
+
+    cr2 = folder / f"{name}.CR2"
+    truth_path = folder / TRUTH_DIR / f"{name}.truth.json"
+    labels_path = folder / TRUTH_DIR / f"{name}.labels.png"
+    truth = None
+    if cr2.is_file() and truth_path.is_file() and labels_path.is_file():
+        truth = json.loads(truth_path.read_text(encoding="utf-8"))
+        size = (truth.get("optics", {}).get("width_px"), truth.get("optics", {}).get("height_px"))
+        if truth.get("seed") != seed or size != (optics.width_px, optics.height_px):
+            truth = None
+    if truth is None:
+        typer.echo(f"{name}: rendering into {folder} ...", err=True)
+        write_capture(render_scene(name, camera, size=scale, seed=seed), camera, folder)
+        truth = json.loads(truth_path.read_text(encoding="utf-8"))
+    labels = cv2.imread(str(labels_path), cv2.IMREAD_UNCHANGED)
+    planes = np.asarray(read_raw(cr2).planes, np.float32)
+    return truth, labels, planes
 
 
 def _evaluate_rgbd(
