@@ -386,8 +386,9 @@ def format_rgbd_table(rows: list[RgbdRow], methods: list[str]) -> str:
     head = f"{'render':<22} {'method':<9}" + "".join(f" {title:>8}" for _, title, _ in _COLUMNS) + f" {'s':>6}"
     lines = [head, "-" * len(head)]
     for row in rows:
+        name = row.name if row.group in ("", ".") else f"{row.group}/{row.name}"
         for method in methods:
-            label = f"{row.name:<22} {method:<9}"
+            label = f"{name:<22} {method:<9}"
             if method not in row.metrics:
                 lines.append(f"{label} {row.status.get(method, 'no result')}")
                 continue
