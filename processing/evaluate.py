@@ -408,7 +408,7 @@ def format_rgbd_table(rows: list[RgbdRow], methods: list[str]) -> str:
             for method in methods:
                 figures = summary[method]
                 count = figures["bad_1"]["count"]
-                label = f"{(group or '.') + ' ' + which:<22} {method:<9}"
+                label = f"{(group if group not in ('', '.') else 'all') + ' ' + which:<22} {method:<9}"
                 if not count:
                     lines.append(f"{label} no result")
                     continue
