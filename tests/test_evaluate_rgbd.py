@@ -173,7 +173,7 @@ def test_bandos_program_finds_a_fronto_parallel_plane_with_our_geometry() -> Non
 
 @pytest.fixture(scope="module")
 def tiny_tree(tmp_path_factory) -> Path:
-    """A cropped Middlebury scene as its own tree, rendered at its own (small) size."""
+    """A cropped Middlebury scene as its own tree, rendered downscaled by 3/4 (240 x 176)."""
     if not MIDDLEBURY.is_dir():
         pytest.skip(f"the Middlebury scenes are not at {MIDDLEBURY}")
     from typer.testing import CliRunner
@@ -185,17 +185,17 @@ def tiny_tree(tmp_path_factory) -> Path:
     source.mkdir(parents=True)
     image = cv2.imread(str(MIDDLEBURY / "Cones" / "im.png"))
     disparity = cv2.imread(str(MIDDLEBURY / "Cones" / "disp.png"), cv2.IMREAD_UNCHANGED)
-    box = (slice(100, 276), slice(150, 390))  # 240 x 176, cones in front of the lattice
+    box = (slice(80, 315), slice(110, 430))  # 320 x 235: cones in front of the lattice
     cv2.imwrite(str(source / "im.png"), image[box])
     cv2.imwrite(str(source / "disp.png"), disparity[box])
     (source / "SOURCE.txt").write_text("Disparity scale factor: 4\n")
     renders = root / "renders"
     result = CliRunner().invoke(
         app,
-        ["simulate", "--from-rgbd-tree", str(root / "src"), "--width", "0", "--seeds", "7", "--out", str(renders)],
+        ["simulate", "--from-rgbd-tree", str(root / "src"), "--scale", "0.75", "--seeds", "7", "--out", str(renders)],
     )
     assert result.exit_code == 0, result.output
-    assert "Cones-s7: rendered" in result.output and "disparity" in result.output
+    assert "Cones-s7: rendered" in result.output and "240x176 tiff" in result.output
     return renders
 
 
