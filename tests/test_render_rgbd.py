@@ -261,3 +261,27 @@ def test_a_middlebury_tree_renders_with_randomised_realism(tmp_path) -> None:
         assert truth["optics"]["width_px"] == 300
     again = render_rgbd_tree(MIDDLEBURY, tmp_path, PROFILE, seeds=(1,), scenes=("Venus",), width_px=300)
     assert [o.status for o in again] == ["cached"]
+
+
+def test_the_mosaic_samples_each_colour_at_its_own_bayer_site() -> None:
+    """Through the RGGB mosaic, a plane's red and blue half-resolution planes are apart by half the red-blue
+    disparity plus the sites' own offset, which the application's Bayer offsets (what `mca process` removes)
+    account for exactly."""
+    from mca.capture.pipeline_app import bayer_channel_offsets_px
+    from mca.processing.evaluate import bayer_planes
+    from mca.processing.render_rgbd import expose_mosaic, sensor_signal
+
+    optics = _optics(320, 256)
+    h, w = optics.height_px, optics.width_px
+    grey = _texture(h, w, sigma=3.0)
+    images = render_filter_images(np.repeat(grey[..., None], 3, axis=2), np.full((h, w), 1400.0), optics)
+    sensor = SensorModel(noise=False, exposure=0.6)
+    mosaic = expose_mosaic(sensor_signal(images, Realism(sensor), optics), sensor, np.random.default_rng(0))
+    planes = bayer_planes(mosaic, sensor.black_level, sensor.white_level)
+    offsets = bayer_channel_offsets_px("RGGB")  # (dx, dy) of R, G, B samples in half-resolution px
+    measured = _phase_shift(planes[..., 0], planes[..., 2], border=20)
+    disparity = optics.disparity_px(1400.0)
+    # red content at full-res x + d/2 sampled on even sites, blue at x - d/2 on odd ones
+    expected_x = disparity / 2.0 - (offsets[0][0] - offsets[2][0])
+    expected_y = -(offsets[0][1] - offsets[2][1])
+    assert measured == pytest.approx((expected_x, expected_y), abs=0.02)
