@@ -99,35 +99,42 @@ def test_a_fronto_parallel_plane_is_shifted_by_the_thin_lens_amount_in_each_filt
 
 
 def test_the_nearer_surface_hides_the_farther_one_in_every_channel_and_uncovers_it_beside() -> None:
-    optics = _optics(160, 120)
+    optics = _optics(640, 320)
     h, w = optics.height_px, optics.width_px
-    distance = np.full((h, w), 1300.0)  # background behind the focus plane
-    distance[40:80, 50:110] = 850.0  # a square before it
+    distance = np.full((h, w), 1500.0)  # background behind the focus plane
+    distance[100:220, 200:440] = 800.0  # a rectangle before it
     radiance = np.full((h, w, 3), 0.8, np.float32)
-    radiance[40:80, 50:110] = 0.1
+    radiance[100:220, 200:440] = 0.1
     images = render_filter_images(radiance, distance, optics)
-    # shift of each channel of the square and of the background, from the thin lens
     pitch = 22.5 / w
     reach = max(
-        math.hypot(*_thin_lens_shift_px(c, z, 1000.0, pitch)) for c in FILTER_CENTRES_MM for z in (850.0, 1300.0)
+        math.hypot(*_thin_lens_shift_px(c, z, 1000.0, pitch)) for c in FILTER_CENTRES_MM for z in (800.0, 1500.0)
     )
     blur = 3.0 / 12.0 * 2.0 * reach  # filter diameter / d_a * disparity
     inset = int(math.ceil(reach + blur / 2 + 3))
-    inner = images[40 + inset : 80 - inset, 50 + inset : 110 - inset]
-    np.testing.assert_allclose(inner, 0.1, atol=0.01)  # no background light through the square, any channel
-    outer = images[: 40 - inset]
-    np.testing.assert_allclose(outer, 0.8, atol=0.01)
-    # no holes where a channel of the square moved off the background (the hidden background is continued
-    # behind it) and no doubled light where the two overlap: every value lies between the two radiances
-    assert images.min() > 0.1 - 0.02 and images.max() < 0.8 + 0.02
-    # the square's channels really moved: red to the left of the chief-ray square (before focus), blue right
-    row = images[60]
+    inner = images[100 + inset : 220 - inset, 200 + inset : 440 - inset]
+    np.testing.assert_allclose(inner, 0.1, atol=0.01)  # no background light through the rectangle, any channel
+    np.testing.assert_allclose(images[: 100 - inset], 0.8, atol=0.01)
+    # no doubled light where the two overlap: every value lies between the two radiances
+    assert images.min() > 0.1 - 0.01 and images.max() < 0.8 + 0.02
+    # Disocclusion: the rectangle (before focus) moves red left, the background (behind) moves red right, so
+    # red shows, right of the rectangle's red image, background that the chief-ray view hides behind the
+    # rectangle: sensor x in (440 + s_front, 440 + s_back). It must be the background's light, not a hole.
+    s_front = _thin_lens_shift_px("red", 800.0, 1000.0, pitch)[0]
+    s_back = _thin_lens_shift_px("red", 1500.0, 1000.0, pitch)[0]
+    assert s_back - s_front > 5.0  # a strip 5 px wide
+    strip = images[130:190, int(math.ceil(440 + s_front + 1.5)) : int(math.floor(440 + s_back - 1.5)), 0]
+    assert strip.size and np.abs(strip - 0.8).max() < 0.05
+    # and blue the same on the left side
+    b_front = _thin_lens_shift_px("blue", 800.0, 1000.0, pitch)[0]
+    b_back = _thin_lens_shift_px("blue", 1500.0, 1000.0, pitch)[0]
+    strip = images[130:190, int(math.ceil(200 + b_back + 1.5)) : int(math.floor(200 + b_front - 1.5)), 2]
+    assert strip.size and np.abs(strip - 0.8).max() < 0.05
+    # the rectangle's channels really moved: red's left edge left of blue's by the red-blue disparity
+    row = images[160]
     red_left_edge = np.argmax(row[:, 0] < 0.45)
     blue_left_edge = np.argmax(row[:, 2] < 0.45)
-    expected = (
-        _thin_lens_shift_px("red", 850.0, 1000.0, pitch)[0] - _thin_lens_shift_px("blue", 850.0, 1000.0, pitch)[0]
-    )
-    assert red_left_edge - blue_left_edge == pytest.approx(expected, abs=1.0)
+    assert red_left_edge - blue_left_edge == pytest.approx(s_front - b_front, abs=1.0)
 
 
 def test_a_slanted_uniform_surface_renders_without_seams() -> None:
