@@ -108,7 +108,7 @@ class _Context:
     def planes(self) -> np.ndarray:
         """The planes at processing resolution with the Bayer sample offsets removed (what the peers see)."""
         if self.aligned is None:
-            from mca.capture.pipeline_app import bayer_channel_offsets_px
+            from mca.capture.api import bayer_channel_offsets_px
             from mca.processing.simulate import shift_image
 
             planes = np.asarray(self.loaded.planes, np.float32)

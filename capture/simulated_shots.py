@@ -295,7 +295,7 @@ def sensor_width_mm(profile: CameraProfile) -> float:
 
 def check_render_size(profile: CameraProfile, width_px: int, height_px: int, fmt: str) -> None:
     """Refuse sizes whose file `mca process` would read with another pitch or orientation than rendered."""
-    from mca.capture.pipeline_app import DOWNSCALED_RAW_RATIO
+    from mca.capture.api import DOWNSCALED_RAW_RATIO
     from mca.capture.sensors import sensor_for
 
     if width_px < height_px:

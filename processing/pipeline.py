@@ -1,30 +1,29 @@
 """The accurate-depth pipeline: one MCA capture's colour planes in, the 2.1D sketch, depths and 3D images out.
 
-Stages (names as given to the recorder and used as keys of `DepthResult.timings_s`):
+The paper's steps (sections IV-V), each a stage reported to the recorder under this name:
 
-- "planes":       planes (H, W, 3) float32 linear RGB at processing resolution, as handed in
-                  (after moving the channels to common sample positions when `channel_offsets_px`
-                  is given).
-- "disparity":    disparity_px (h, w) float32 per-pixel widest-pair disparity in INPUT pixels on
-                  the analysis grid, confidence (h, w) float32 in [0, 1], cost (h, w) colour-line
-                  measure at the minimum, analysis_scale (processing px per analysis px).
-- "sketch":       labels (h, w) int32 region ids 1..L on the analysis grid, aligned (h, w, 3) the
-                  fringe-free image the segmentation used, region_count, focus_region, order
-                  {id: rank}, occludes {id: [ids]}.
-- "refine":       disparity_px {id: value at the region centroid, input px}, slant {id: (a, b, c) or
-                  None}, dip {id: cost-dip confidence}.
-- "depth":        labels (H, W) uint16, disparity_px (H, W) float32 region model in input px,
-                  depth_mm (H, W) float32 distance from the lens (absent without optics), regions
-                  (list of `Region`).
-- "all_in_focus": image (H, W, 3) float32 linear RGB with the channels re-aligned per region.
-- "mpi":          layers (list of `MultiPlaneImage`, back to front).
+- "planes":       the (H, W, 3) float32 linear planes at processing resolution, channels moved to common
+                  sample positions when `channel_offsets_px` is given.
+- "disparity":    dense per-pixel disparity (`processing.dense`) on the analysis grid (the planes reduced
+                  to at most `analysis_max_side_px`): disparity_px in INPUT px, confidence in [0, 1],
+                  analysis_scale (processing px per analysis px), search_range_px.
+- "surfaces":     superpixels with a slanted plane each, chosen with their neighbours
+                  (`processing.surfaces`): labels, count.
+- "sketch":       the 2.1D sketch (`processing.sketch`): labels (analysis grid, region ids 1..L), aligned
+                  (the fringe-free image it was cut on), region_count, focus_region, order {id: rank},
+                  occludes {id: [ids]}.
+- "refine":       each region's disparity refined on the raw cost with all its pixels (`processing.refine`):
+                  disparity_px {id: value at the centroid, input px}, planar {id: bool}, offset_px {id: shift}.
+- "depth":        per pixel at processing resolution: labels (uint16), disparity_px (input px), depth_mm
+                  (eq. 2 -> eqs. 13/14 -> distance; absent without optics), regions (list of `Region`).
+- "all_in_focus": image: the channels re-aligned pixel by pixel so that the fringes vanish (section V-A).
+- "mpi":          layers: one multi-plane image per region at Δd (eq. 3) and ΔD (eq. 16), back to front.
 
 `Recorder.timing(stage, seconds)` is called after each stage with its wall-clock time.
 """
 
 from __future__ import annotations
 
-import threading
 import time
 from dataclasses import dataclass, field
 
@@ -32,22 +31,17 @@ import cv2
 import numpy as np
 
 from mca.processing.camera import FilterAperture
+from mca.processing.cost import stack_bands
+from mca.processing.dense import DenseParams, estimate_dense
 from mca.processing.depth import depth_map_mm, region_depth
-from mca.processing.disparity import DisparityParams, estimate_disparity, parallel_map
+from mca.processing.disparity import parallel_map, warp_channels
+from mca.processing.features import display_gamma, feature_bands
 from mca.processing.mpi import all_in_focus, multi_plane_images
 from mca.processing.optics import MCAOptics
+from mca.processing.refine import Refinement, RefineParams, refine_regions
 from mca.processing.result import DepthResult, NullRecorder, Recorder, Region
-from mca.processing.sketch import (
-    BoundaryParams,
-    RefineParams,
-    SketchParams,
-    build_sketch,
-    occlusion_aware_weights,
-    prepare_refine_level,
-    refine_regions,
-    rescale_plane,
-    snap_boundaries,
-)
+from mca.processing.sketch import Sketch, SketchParams, SketchRegion, build_sketch
+from mca.processing.surfaces import SurfaceParams, build_surfaces, plane_map
 
 # Position of each channel's samples relative to the centre of its 2x2 RGGB block, in half-resolution
 # (processing) pixels, for planes taken straight from an RGGB mosaic: red at (0, 0), the mean of the two
@@ -55,21 +49,23 @@ from mca.processing.sketch import (
 # offsets are not mistaken for disparity (half a pixel of red-blue offset is ~7 mm at the paper's setup).
 RGGB_HALF_RES_OFFSETS_PX: tuple[tuple[float, float], ...] = ((-0.25, -0.25), (0.0, 0.0), (0.25, 0.25))
 
-# Search range around the focus plane when optics are known (inter-object depth, mm), with margin over
-# the -150..+300 mm the appliance is specified for, reaching a wall half a metre behind the focus plane.
-DEPTH_RANGE_MM = (-190.0, 600.0)
+# Search range when optics are known: from half the focus distance (but at least 1.2 focal lengths) out to
+# infinity, whose disparity is finite (eq. 11 with the image at the focal plane); the scene's own range is
+# found inside it (`processing.dense.occupied_range`).
+NEAREST_FRACTION_OF_FOCUS = 0.5
+NEAREST_FOCAL_LENGTHS = 1.2
+INFINITY_MARGIN_PX = 0.5  # kept below the disparity of infinity (no distance lies beyond it)
 
 
 @dataclass(frozen=True)
 class PipelineParams:
     """Knobs of the whole pipeline; defaults are those the evaluation and the tests use."""
 
-    analysis_max_side_px: int = 960  # the per-pixel search and the sketch run on a grid this large
-    disparity: DisparityParams = DisparityParams()
-    sketch: SketchParams = SketchParams()
-    refine: RefineParams = RefineParams()
-    occlusion_margin_px: int = 3  # analysis px excluded beside occluders when refining
-    boundaries: BoundaryParams | None = BoundaryParams()  # None: labels upsampled by nearest neighbour only
+    analysis_max_side_px: int = 1400  # dense disparity, surfaces and sketch run on a grid at most this large
+    dense: DenseParams = field(default_factory=DenseParams)
+    surfaces: SurfaceParams = field(default_factory=SurfaceParams)
+    sketch: SketchParams = field(default_factory=SketchParams)
+    refine: RefineParams | None = field(default_factory=RefineParams)  # None: the surfaces' disparity as it is
 
 
 @dataclass
@@ -96,40 +92,20 @@ class _Stage:
             self.timer.recorder.timing(self.name, seconds)
 
 
-class _Background:
-    """`function(*args)` on its own thread; `result()` waits for it (and raises what it raised)."""
-
-    def __init__(self, function, *args) -> None:
-        self._value, self._error = None, None
-
-        def target() -> None:
-            try:
-                self._value = function(*args)
-            except BaseException as error:
-                self._error = error
-
-        self._thread = threading.Thread(target=target, name="mca-refine-level", daemon=True)
-        self._thread.start()
-
-    def result(self):
-        self._thread.join()
-        if self._error is not None:
-            raise self._error
-        return self._value
-
-
 def default_disparity_range_px(
     aperture: FilterAperture, optics: MCAOptics | None, shape_px: tuple[int, int]
 ) -> tuple[float, float]:
-    """Search range in input pixels: DEPTH_RANGE_MM around the focus plane with optics, else from the frame
-    size (-2 % .. +3.5 % of the longer side, which covers the authors' range for the bando2008 photographs)."""
+    """Search range in input pixels. With optics: from max(0.5 focus, 1.2 f) to just short of infinity.
+    Without: from the frame size, -4 % .. +5 % of the longer side (covers the authors' range for the
+    bando2008 photographs with room on both sides)."""
     if optics is not None:
         focus = optics.focus_distance_mm
-        low = float(optics.disparity_px_at_distance(focus + DEPTH_RANGE_MM[0]))
-        high = float(optics.disparity_px_at_distance(focus + DEPTH_RANGE_MM[1]))
-        return (min(low, high), max(low, high))
+        nearest = max(NEAREST_FRACTION_OF_FOCUS * focus, NEAREST_FOCAL_LENGTHS * optics.focal_length_mm)
+        low = float(optics.disparity_px_at_distance(nearest))
+        infinity = float(optics.disparity_px(optics.sensor_distance_mm - optics.focal_length_mm))
+        return (min(low, 0.0), max(infinity - INFINITY_MARGIN_PX, 0.0))
     side = float(max(shape_px))
-    return (-max(6.0, 0.02 * side), max(10.0, 0.035 * side))
+    return (-max(6.0, 0.04 * side), max(10.0, 0.05 * side))
 
 
 def catmull_rom_kernel(shift_px: float) -> np.ndarray:
@@ -176,6 +152,21 @@ def align_channel_samples(planes: np.ndarray, offsets_px: tuple[tuple[float, flo
     return cv2.merge(parallel_map(one, range(3)))
 
 
+def rescale_plane(plane: tuple[float, float, float] | np.ndarray, factor: float) -> np.ndarray:
+    """A disparity plane on a grid -> the same plane on a grid `factor` times finer, disparity in the finer
+    grid's pixels (pixel centres: x_coarse = (x_fine + 0.5) / factor - 0.5)."""
+    a, b, c = (float(v) for v in plane)
+    return np.array([a, b, factor * c + (a + b) * 0.5 * (1.0 - factor)])
+
+
+def _analysis_grid(planes: np.ndarray, max_side_px: int) -> tuple[np.ndarray, int]:
+    h, w = planes.shape[:2]
+    factor = max(1, int(np.ceil(max(h, w) / max_side_px)))
+    if factor == 1:
+        return planes, 1
+    return cv2.resize(planes, (w // factor, h // factor), interpolation=cv2.INTER_AREA), factor
+
+
 def run_pipeline(
     planes: np.ndarray,
     aperture: FilterAperture,
@@ -187,14 +178,13 @@ def run_pipeline(
     channel_offsets_px: tuple[tuple[float, float], ...] | None = None,
     params: PipelineParams = PipelineParams(),
 ) -> DepthResult:
-    """Recover regions, their occlusion order and depths from one MCA capture (paper sections IV-V).
+    """Recover regions, their occlusion order and per-pixel depths from one MCA capture (paper sections IV-V).
 
     planes: (H, W, 3) float32 linear RGB at processing resolution; pixel_scale: input-image pixels per
     processing pixel (2 for half-resolution Bayer planes); disparity_range_px: search range in input
     pixels (default: `default_disparity_range_px`). All disparities reported are between the widest
     filter pair in input-image pixels, + = farther than focus; `optics` (with the input pixel pitch)
-    turns them into depths, without it depths stay None. See the module docstring for the stages
-    reported to `recorder`.
+    turns them into depths, without it depths stay None. See the module docstring for the stages.
     """
     recorder = recorder if recorder is not None else NullRecorder()
     timer = _Timer(recorder)
@@ -209,148 +199,67 @@ def run_pipeline(
             planes = align_channel_samples(planes, channel_offsets_px)
         recorder.record("planes", planes=planes, pixel_scale=pixel_scale)
 
-    # --- per-pixel disparity on the analysis grid --------------------------------------------------------------
     with timer.stage("disparity"):
-        factor = max(1, int(np.ceil(max(height, width) / params.analysis_max_side_px)))
-        if factor > 1:
-            small = cv2.resize(planes, (width // factor, height // factor), interpolation=cv2.INTER_AREA)
-        else:
-            small = planes
+        small, factor = _analysis_grid(planes, params.analysis_max_side_px)
+        to_input = float(factor * pixel_scale)  # input px per analysis px
         range_in = disparity_range_px or default_disparity_range_px(
             aperture, optics, (int(height * pixel_scale), int(width * pixel_scale))
         )
-        to_analysis = 1.0 / (pixel_scale * factor)
-        range_an = (range_in[0] * to_analysis - 1.0, range_in[1] * to_analysis + 1.0)
-        disparity = estimate_disparity(small, aperture, range_an, params.disparity)
+        range_an = (range_in[0] / to_input, range_in[1] / to_input)
+        dense = estimate_dense(small, aperture, range_an, params.dense)
         recorder.record(
             "disparity",
-            disparity_px=disparity.disparity_px / np.float32(to_analysis),
-            confidence=disparity.confidence,
-            cost=disparity.cost,
+            disparity_px=dense.disparity_px * np.float32(to_input),
+            confidence=dense.confidence,
             analysis_scale=float(factor),
+            search_range_px=(dense.search_range_px[0] * to_input, dense.search_range_px[1] * to_input),
         )
 
-    # --- the 2.1D sketch -------------------------------------------------------------------------------------------
-    # the refinement's pyramid level and band-pass need no sketch: made on a thread beside the single-threaded
-    # superpixels (joined in "refine")
-    refine_level = _Background(prepare_refine_level, planes, params.refine)
+    with timer.stage("surfaces"):
+        aligned = display_gamma(warp_channels(small, aperture, dense.disparity_px))
+        surfaces = build_surfaces(aligned, dense.disparity_px, params.surfaces)
+        recorder.record("surfaces", labels=surfaces.labels, count=surfaces.count)
+
     with timer.stage("sketch"):
-        sketch = build_sketch(small, aperture, disparity, params.sketch)
+        surface_disparity = surfaces.disparity()
+        sketch = build_sketch(surfaces, surface_disparity, dense.confidence, params.sketch)
+        focus_id = _focus_region(sketch, params.sketch.focus_tolerance_px, to_input)
         recorder.record(
             "sketch",
             labels=sketch.labels,
-            aligned=sketch.aligned,
+            aligned=aligned,
             region_count=len(sketch.regions),
-            focus_region=sketch.focus_region,
+            focus_region=focus_id,
             order=sketch.order,
             occludes=sketch.occludes,
         )
 
-    # --- sub-pixel region models on the processing grid ------------------------------------------------------------
     with timer.stage("refine"):
-        labels_full = cv2.resize(sketch.labels.astype(np.int32), (width, height), interpolation=cv2.INTER_NEAREST)
-        weights_an = occlusion_aware_weights(
-            sketch.labels, disparity.confidence, sketch.occludes, params.occlusion_margin_px
+        refinement = _no_refinement(sketch, surface_disparity) if params.refine is None else refine_regions(
+            stack_bands(feature_bands(small)), aperture, sketch.labels, surface_disparity, params.refine
         )
-        weights_full = cv2.resize(weights_an, (width, height), interpolation=cv2.INTER_LINEAR)
-        init = {r.id: rescale_plane(r.plane, float(factor)) for r in sketch.regions}
-        slanted = {r.id: r.slanted for r in sketch.regions}
-        refine = params.refine
-        refine = RefineParams(**{**refine.__dict__, "search_radius_px": max(refine.search_radius_px, 0.5 * factor)})
-        planes_proc, dips = refine_regions(
-            planes, aperture, labels_full, weights_full, init, slanted, refine, prepared=refine_level.result()
-        )
-        centroids = {
-            r.id: ((r.centroid_xy[0] + 0.5) * factor - 0.5, (r.centroid_xy[1] + 0.5) * factor - 0.5)
-            for r in sketch.regions
-        }
-        planes_in = {i: rescale_plane(p, pixel_scale) for i, p in planes_proc.items()}
-        centre_disp = {}
-        for i, (a, b, c) in planes_in.items():
-            x, y = ((centroids[i][0] + 0.5) * pixel_scale - 0.5, (centroids[i][1] + 0.5) * pixel_scale - 0.5)
-            centre_disp[i] = float(a * x + b * y + c)
+        sketch = _refined_sketch(sketch, refinement, params.sketch.slant_px)
         recorder.record(
             "refine",
-            disparity_px=centre_disp,
-            slant={i: (planes_in[i] if slanted[i] else None) for i in planes_in},
-            dip=dips,
+            disparity_px={r.id: r.disparity_px * to_input for r in sketch.regions},
+            planar={i: p is not None for i, p in refinement.planes.items()},
+            offset_px=refinement.offsets_px,
         )
 
-    # --- depth ---------------------------------------------------------------------------------------------------
     with timer.stage("depth"):
-        coef = np.zeros((int(labels_full.max()) + 1, 3), np.float32)
-        for i, plane in planes_proc.items():
-            coef[i] = plane
-        if params.boundaries is not None and factor > 1:
-            # region boundaries at processing resolution (the analysis grid's are blocks of `factor` px)
-            start = time.perf_counter()
-            labels_full = snap_boundaries(
-                planes, aperture, labels_full, small, sketch.labels, sketch.aligned, coef, factor, params.boundaries
-            )
-            timer.timings["boundaries"] = time.perf_counter() - start
-        # constant regions: a gather; slanted ones a x + b y + c on their own pixels
-        model_proc = np.take(coef[:, 2], labels_full)
-        slanted_pixels = {}
-        for i, (a, b, c) in planes_proc.items():
-            if a != 0.0 or b != 0.0:
-                sel = labels_full == i
-                ys_sel, xs_sel = np.nonzero(sel)
-                model_proc[sel] = (
-                    coef[i, 0] * xs_sel.astype(np.float32) + coef[i, 1] * ys_sel.astype(np.float32) + coef[i, 2]
-                )
-                slanted_pixels[i] = sel
+        superpixels_full = _upsample_labels(surfaces.labels, factor, (height, width))
+        labels16 = sketch.superpixel_region[superpixels_full].astype(np.uint16)
+        model_proc = _model_at_processing(surfaces, sketch, refinement, superpixels_full, labels16, factor)
         model_in = model_proc * np.float32(pixel_scale)
-        raw_in = cv2.resize(disparity.disparity_px, (width, height), interpolation=cv2.INTER_LINEAR) / np.float32(
-            to_analysis
-        )
-        confidence_full = cv2.resize(disparity.confidence, (width, height), interpolation=cv2.INTER_LINEAR)
-        depth = None
-        if optics is not None:
-            # constant regions: one distance each (a gather); slanted ones pixel by pixel
-            per_region = np.full(coef.shape[0], np.nan, np.float32)
-            for i, (a, b, c) in planes_proc.items():
-                per_region[i] = depth_map_mm(np.array([c * pixel_scale], np.float32), optics)[0]
-            depth = per_region[labels_full]
-            for sel in slanted_pixels.values():
-                depth[sel] = depth_map_mm(model_in[sel], optics)
-        # order: by disparity, nearest first (smaller disparity = nearer)
-        ranked = sorted(planes_in, key=lambda i: centre_disp[i])
-        order = {i: rank for rank, i in enumerate(ranked)}
-        focus_id = min(centre_disp, key=lambda i: abs(centre_disp[i])) if centre_disp else None
-        focus_tol_in = params.sketch.focus_tolerance_px * factor * pixel_scale
-        if focus_id is not None and abs(centre_disp[focus_id]) > max(focus_tol_in, 1.0):
-            focus_id = None
-        counts = np.bincount(labels_full.ravel(), minlength=int(labels_full.max()) + 1)
-        regions = []
-        for r in sketch.regions:
-            i = r.id
-            chain = region_depth(centre_disp[i], optics) if optics is not None else None
-            occludes = sorted(j for j in sketch.occludes.get(i, []) if centre_disp[j] > centre_disp[i]) + sorted(
-                j for j, backs in sketch.occludes.items() if i in backs and centre_disp[j] > centre_disp[i]
-            )
-            regions.append(
-                Region(
-                    id=i,
-                    pixels=int(counts[i]),
-                    order=order[i],
-                    occludes=sorted(set(occludes)),
-                    disparity_px=centre_disp[i],
-                    inter_image_depth_mm=chain.inter_image_depth_mm if chain else None,
-                    inter_object_depth_mm=chain.inter_object_depth_mm if chain else None,
-                    distance_mm=chain.distance_mm if chain else None,
-                    slant=tuple(float(v) for v in planes_in[i]) if slanted[i] else None,
-                    in_focus=(i == focus_id),
-                    confidence=float(np.clip(0.5 * r.confidence + 0.5 * dips.get(i, 0.0), 0, 1)),
-                )
-            )
-        regions.sort(key=lambda r: r.order)
-        labels16 = labels_full.astype(np.uint16)
-        record_items = dict(labels=labels16, disparity_px=model_in, regions=regions)
+        depth = depth_map_mm(model_in, optics) if optics is not None else None
+        raw_in = _upsample(dense.disparity_px, (height, width)) * np.float32(to_input)
+        confidence_full = _upsample(dense.confidence, (height, width))
+        regions = _regions(sketch, optics, factor, pixel_scale, focus_id)
+        record_items: dict[str, object] = dict(labels=labels16, disparity_px=model_in, regions=regions)
         if depth is not None:
             record_items["depth_mm"] = depth
         recorder.record("depth", **record_items)
 
-    # --- the 3D images -----------------------------------------------------------------------------------------------
     with timer.stage("all_in_focus"):
         sharp = all_in_focus(planes, aperture, model_proc)
         recorder.record("all_in_focus", image=sharp)
@@ -379,3 +288,117 @@ def run_pipeline(
         pixel_scale=pixel_scale,
         timings_s=timer.timings,
     )
+
+
+def _no_refinement(sketch: Sketch, disparity: np.ndarray) -> Refinement:
+    return Refinement(disparity, {r.id: None for r in sketch.regions}, {r.id: 0.0 for r in sketch.regions})
+
+
+def _refined_sketch(sketch: Sketch, refinement: Refinement, slant_px: float) -> Sketch:
+    """The sketch's regions with their refined planes (planar regions) or shifted levels (curved ones)."""
+    regions = []
+    for r in sketch.regions:
+        plane = refinement.planes.get(r.id)
+        if plane is None:
+            a, b, c = r.plane
+            plane = (a, b, c + refinement.offsets_px.get(r.id, 0.0))
+        a, b, c = plane
+        x, y = r.centroid_xy
+        if not r.slanted:  # a fronto-parallel region: one level, the plane's at the centroid
+            a, b, c = 0.0, 0.0, a * x + b * y + c
+        regions.append(
+            SketchRegion(
+                id=r.id,
+                pixels=r.pixels,
+                plane=(a, b, c),
+                slanted=r.slanted,
+                centroid_xy=r.centroid_xy,
+                disparity_px=a * x + b * y + c,
+                confidence=r.confidence,
+            )
+        )
+    ranked = sorted(regions, key=lambda region: region.disparity_px)
+    order = {region.id: rank for rank, region in enumerate(ranked)}
+    return Sketch(sketch.labels, regions, order, sketch.occludes, sketch.superpixel_region, sketch.pair_gap_px)
+
+
+def _model_at_processing(
+    surfaces: object,
+    sketch: Sketch,
+    refinement: Refinement,
+    superpixels_full: np.ndarray,
+    labels_full: np.ndarray,
+    factor: int,
+) -> np.ndarray:
+    """Per-pixel disparity (processing px) at processing resolution: the refined plane of a planar region, the
+    surfaces' planes shifted by the region's refinement in a curved one."""
+    planes = surfaces.planes  # type: ignore[attr-defined]
+    region_of = sketch.superpixel_region
+    shifted = planes.copy()
+    shifted[:, 2] += np.array([refinement.offsets_px.get(int(region_of[i]), 0.0) for i in range(planes.shape[0])])
+    planes_proc = np.stack([rescale_plane(p, factor) for p in shifted]) if factor > 1 else shifted
+    model = plane_map(superpixels_full, planes_proc)
+    count = int(labels_full.max()) + 1
+    region_planes = np.zeros((count, 3))
+    planar = np.zeros(count, bool)
+    for rid, plane in refinement.planes.items():
+        if plane is not None and rid < count:
+            region_planes[rid] = rescale_plane(plane, factor)
+            planar[rid] = True
+    if planar.any():
+        flat = plane_map(labels_full.astype(np.int32), region_planes)
+        mask = planar[labels_full]
+        model[mask] = flat[mask]
+    return model
+
+
+def _upsample_labels(labels: np.ndarray, factor: int, shape: tuple[int, int]) -> np.ndarray:
+    if factor == 1 and labels.shape == shape:
+        return labels
+    return cv2.resize(labels.astype(np.int32), (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST)
+
+
+def _upsample(array: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    if array.shape == shape:
+        return array.astype(np.float32, copy=True)
+    return cv2.resize(array.astype(np.float32), (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
+
+
+def _focus_region(sketch: Sketch, tolerance_px: float, to_input: float) -> int | None:
+    """The region nearest the focus plane, when its disparity is within the tolerance (input px, >= 1)."""
+    if not sketch.regions:
+        return None
+    best = min(sketch.regions, key=lambda r: abs(r.disparity_px))
+    if abs(best.disparity_px) * to_input > max(tolerance_px * to_input, 1.0):
+        return None
+    return best.id
+
+
+def _regions(
+    sketch: Sketch, optics: MCAOptics | None, factor: int, pixel_scale: float, focus_id: int | None
+) -> list[Region]:
+    """The sketch's regions in input pixels, with their depth chain (eqs. 2, 13/14) and occlusions."""
+    to_input = factor * pixel_scale
+    regions = []
+    for r in sketch.regions:
+        centre_in = ((r.centroid_xy[0] + 0.5) * to_input - 0.5, (r.centroid_xy[1] + 0.5) * to_input - 0.5)
+        plane_in = rescale_plane(r.plane, to_input)
+        disparity_in = float(plane_in[0] * centre_in[0] + plane_in[1] * centre_in[1] + plane_in[2])
+        chain = region_depth(disparity_in, optics) if optics is not None else None
+        regions.append(
+            Region(
+                id=r.id,
+                pixels=int(r.pixels * factor * factor),
+                order=sketch.order[r.id],
+                occludes=list(sketch.occludes.get(r.id, [])),
+                disparity_px=disparity_in,
+                inter_image_depth_mm=chain.inter_image_depth_mm if chain else None,
+                inter_object_depth_mm=chain.inter_object_depth_mm if chain else None,
+                distance_mm=chain.distance_mm if chain else None,
+                slant=tuple(float(v) for v in plane_in) if r.slanted else None,  # type: ignore[arg-type]
+                in_focus=(r.id == focus_id),
+                confidence=r.confidence,
+            )
+        )
+    regions.sort(key=lambda region: region.order)
+    return regions

@@ -274,7 +274,7 @@ def test_the_mosaic_samples_each_colour_at_its_own_bayer_site() -> None:
     """Through the RGGB mosaic, a plane's red and blue half-resolution planes are apart by half the red-blue
     disparity plus the sites' own offset, which the application's Bayer offsets (what `mca process` removes)
     account for exactly."""
-    from mca.capture.pipeline_app import bayer_channel_offsets_px
+    from mca.capture.api import bayer_channel_offsets_px
     from mca.processing.evaluate import bayer_planes
     from mca.processing.render_rgbd import expose_mosaic, sensor_signal
 

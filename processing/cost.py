@@ -1,0 +1,210 @@
+"""The colour-alignment cost of an MCA capture: how badly the three filter images disagree at a disparity.
+
+Measure: the colour-line measure of Bando et al. 2008, L = det(C) / (C_rr C_gg C_bb) over a window, C the
+3x3 covariance of the (shifted) colour channels. Through the regularised pairwise correlations rho_ab it is
+L = 1 - rho_rg^2 - rho_rb^2 - rho_gb^2 + 2 rho_rg rho_rb rho_gb: 0 when the window's colours lie on a line
+(the channels are aligned), towards 1 for unrelated channels, invariant to the gain, offset and sign of each
+channel, so objects of any colour align. It is evaluated on zero-mean band-pass feature planes
+(`processing.features`), several of which are pooled into one covariance per window.
+
+Geometry: for a candidate disparity d of the widest filter pair, channel c is sampled at x + d s_c, where
+s_c = `FilterAperture.shift_per_disparity(c)` (px of channel displacement per px of disparity).
+
+Both kernels are compiled with numba (pure numpy would spend seconds per megapixel here): the box sums are
+running sums over a ring buffer of rows, so one candidate costs one pass over the image.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+from mca.processing.camera import CHANNELS, FilterAperture
+
+
+def channel_shifts(aperture: FilterAperture) -> np.ndarray:
+    """(3, 2) float64: (dx, dy) image displacement of red, green, blue per pixel of widest-pair disparity."""
+    return np.array([aperture.shift_per_disparity(c) for c in CHANNELS], dtype=np.float64)
+
+
+@nb.njit(cache=True, fastmath=True, inline="always")
+def _bilinear(img: np.ndarray, y: float, x: float) -> float:
+    h, w = img.shape
+    x = min(max(x, 0.0), w - 1.0)
+    y = min(max(y, 0.0), h - 1.0)
+    x0 = int(x)
+    y0 = int(y)
+    x1 = min(x0 + 1, w - 1)
+    y1 = min(y0 + 1, h - 1)
+    fx = x - x0
+    fy = y - y0
+    top = img[y0, x0] * (1.0 - fx) + img[y0, x1] * fx
+    bottom = img[y1, x0] * (1.0 - fx) + img[y1, x1] * fx
+    return top * (1.0 - fy) + bottom * fy
+
+
+@nb.njit(cache=True, fastmath=True, inline="always")
+def _sample_row(src: np.ndarray, y: int, sx: float, sy: float, out: np.ndarray) -> None:
+    """out[x] = src bilinearly sampled at (x + sx, y + sy), coordinates clamped to the image."""
+    h, w = src.shape
+    fy = min(max(y + sy, 0.0), h - 1.0)
+    y0 = int(fy)
+    ty = fy - y0
+    y1 = min(y0 + 1, h - 1)
+    ix = int(np.floor(sx))
+    tx = sx - ix
+    a = (1.0 - tx) * (1.0 - ty)
+    b = tx * (1.0 - ty)
+    c = (1.0 - tx) * ty
+    d = tx * ty
+    lo = min(max(-ix, 0), w)  # first x whose taps x + ix, x + ix + 1 are both inside
+    hi = max(min(w - 1 - ix - 1, w - 1), lo - 1)  # last such x
+    for x in range(w):
+        if x < lo or x > hi:
+            xa = min(max(x + ix, 0), w - 1)
+            xb = min(max(x + ix + 1, 0), w - 1)
+            out[x] = a * src[y0, xa] + b * src[y0, xb] + c * src[y1, xa] + d * src[y1, xb]
+    if ty == 0.0:
+        for x in range(lo, hi + 1):
+            out[x] = (1.0 - tx) * src[y0, x + ix] + tx * src[y0, x + ix + 1]
+    else:
+        for x in range(lo, hi + 1):
+            out[x] = a * src[y0, x + ix] + b * src[y0, x + ix + 1] + c * src[y1, x + ix] + d * src[y1, x + ix + 1]
+
+
+@nb.njit(cache=True, fastmath=True, inline="always")
+def _sample_row_map(src: np.ndarray, y: int, disparity_row: np.ndarray, sx: float, sy: float, out: np.ndarray) -> None:
+    """out[x] = src bilinearly sampled at (x + d(x) sx, y + d(x) sy), clamped."""
+    _h, w = src.shape
+    for x in range(w):
+        dd = disparity_row[x]
+        out[x] = _bilinear(src, y + dd * sy, x + dd * sx)
+
+
+@nb.njit(cache=True, fastmath=True)
+def _cost_map(bands, shifts, d, disparity, radius, eps, out):  # type: ignore[no-untyped-def]
+    """Colour-line cost of every pixel (window (2 radius + 1)^2, clamped at the borders) with the channels
+    sampled at x + d s_c, d the scalar `d` or, when `disparity` has rows, the per-pixel map; into `out` (h, w).
+
+    One pass over the rows: each row's six products (rr, gg, bb, rg, rb, gb, pooled over the bands) go into a
+    ring buffer of the window's rows; column sums are updated as rows enter and leave, and a running sum
+    along each row gives the window sums."""
+    nbands, _, h, w = bands.shape
+    win = 2 * radius + 1
+    ring = np.zeros((win, 6, w), np.float32)
+    col = np.zeros((6, w), np.float32)
+    box = np.empty((6, w), np.float32)
+    rr = np.empty(w, np.float32)
+    gg = np.empty(w, np.float32)
+    bb = np.empty(w, np.float32)
+    per_pixel = disparity.shape[0] > 0
+    for y in range(h + radius):
+        slot = y % win
+        if y >= win:
+            for c in range(6):
+                for x in range(w):
+                    col[c, x] -= ring[slot, c, x]
+        if y < h:
+            for c in range(6):
+                for x in range(w):
+                    ring[slot, c, x] = 0.0
+            for b in range(nbands):
+                if per_pixel:
+                    _sample_row_map(bands[b, 0], y, disparity[y], shifts[0, 0], shifts[0, 1], rr)
+                    _sample_row_map(bands[b, 1], y, disparity[y], shifts[1, 0], shifts[1, 1], gg)
+                    _sample_row_map(bands[b, 2], y, disparity[y], shifts[2, 0], shifts[2, 1], bb)
+                else:
+                    _sample_row(bands[b, 0], y, d * shifts[0, 0], d * shifts[0, 1], rr)
+                    _sample_row(bands[b, 1], y, d * shifts[1, 0], d * shifts[1, 1], gg)
+                    _sample_row(bands[b, 2], y, d * shifts[2, 0], d * shifts[2, 1], bb)
+                for x in range(w):
+                    ring[slot, 0, x] += rr[x] * rr[x]
+                    ring[slot, 1, x] += gg[x] * gg[x]
+                    ring[slot, 2, x] += bb[x] * bb[x]
+                    ring[slot, 3, x] += rr[x] * gg[x]
+                    ring[slot, 4, x] += rr[x] * bb[x]
+                    ring[slot, 5, x] += gg[x] * bb[x]
+            for c in range(6):
+                for x in range(w):
+                    col[c, x] += ring[slot, c, x]
+        else:
+            for c in range(6):
+                for x in range(w):
+                    ring[slot, c, x] = 0.0
+        yc = y - radius
+        if yc < 0:
+            continue
+        rows = min(yc + radius, h - 1) - max(yc - radius, 0) + 1
+        for c in range(6):
+            acc = np.float32(0.0)
+            for x in range(min(radius, w)):
+                acc += col[c, x]
+            for x in range(w):
+                if x + radius < w:
+                    acc += col[c, x + radius]
+                if x - radius - 1 >= 0:
+                    acc -= col[c, x - radius - 1]
+                box[c, x] = acc
+        for x in range(w):
+            cols = min(x + radius, w - 1) - max(x - radius, 0) + 1
+            e = eps * rows * cols * nbands
+            irr = 1.0 / np.sqrt(box[0, x] + e)
+            igg = 1.0 / np.sqrt(box[1, x] + e)
+            ibb = 1.0 / np.sqrt(box[2, x] + e)
+            rg = box[3, x] * irr * igg
+            rb = box[4, x] * irr * ibb
+            gb = box[5, x] * igg * ibb
+            value = 1.0 - rg * rg - rb * rb - gb * gb + 2.0 * rg * rb * gb
+            out[yc, x] = min(max(value, 0.0), 1.0)
+
+
+@nb.njit(cache=True, parallel=True)
+def _volume(bands: np.ndarray, shifts: np.ndarray, candidates: np.ndarray, radius: int, eps: float) -> np.ndarray:
+    _, _, h, w = bands.shape
+    count = candidates.shape[0]
+    out = np.empty((count, h, w), np.float32)
+    none = np.zeros((0, w), np.float32)
+    for k in nb.prange(count):
+        _cost_map(bands, shifts, candidates[k], none, radius, eps, out[k])
+    return out
+
+
+@nb.njit(cache=True, parallel=True)
+def _at_maps(bands: np.ndarray, shifts: np.ndarray, disparities: np.ndarray, radius: int, eps: float) -> np.ndarray:
+    _, _, h, w = bands.shape
+    count = disparities.shape[0]
+    out = np.empty((count, h, w), np.float32)
+    for k in nb.prange(count):
+        _cost_map(bands, shifts, 0.0, disparities[k], radius, eps, out[k])
+    return out
+
+
+def stack_bands(bands: list[np.ndarray]) -> np.ndarray:
+    """Feature planes [(H, W, 3), ...] -> the (B, 3, H, W) float32 layout the kernels take."""
+    return np.ascontiguousarray(np.stack([np.moveaxis(b, -1, 0) for b in bands]), dtype=np.float32)
+
+
+def cost_volume(
+    bands: np.ndarray, aperture: FilterAperture, candidates_px: np.ndarray, window_px: int, noise_floor: float
+) -> np.ndarray:
+    """(D, H, W) float32 colour-line cost of every pixel at every candidate disparity (px of these planes).
+
+    `bands` (B, 3, H, W) from `stack_bands`; `noise_floor` is the band-pass amplitude treated as flat (it
+    regularises the correlations of windows with nothing to align)."""
+    return _volume(
+        bands,
+        channel_shifts(aperture),
+        np.asarray(candidates_px, np.float64),
+        int(window_px) // 2,
+        float(noise_floor) ** 2,
+    )
+
+
+def cost_at(
+    bands: np.ndarray, aperture: FilterAperture, disparity_maps_px: np.ndarray, window_px: int, noise_floor: float
+) -> np.ndarray:
+    """Colour-line cost of every pixel at per-pixel disparities: (K, H, W) maps in, (K, H, W) costs out."""
+    maps = np.ascontiguousarray(disparity_maps_px, dtype=np.float32)
+    if maps.ndim == 2:
+        maps = maps[None]
+    return _at_maps(bands, channel_shifts(aperture), maps, int(window_px) // 2, float(noise_floor) ** 2)

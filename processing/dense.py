@@ -1,0 +1,159 @@
+"""Dense per-pixel MCA disparity: a colour-alignment cost volume, semi-global aggregation, sub-pixel minimum.
+
+1. Range: a quick search on a quarter-size image over the whole range the optics allow finds the
+   disparities the scene occupies; the full search covers those plus a margin (fewer candidates, and no
+   false matches far outside the scene).
+2. Cost: the colour-line cost (`processing.cost`) of the feature planes at every candidate, plus the same cost
+   computed at half size and brought back up (weak, fine texture is backed by coarser structure: upscaled or
+   noisy content has little signal at the finest scale).
+3. Aggregation: eight-path semi-global aggregation (`processing.sgm`) spreads the evidence of textured
+   pixels along the image; textureless ones take it from their neighbours.
+4. Winner and sub-pixel: the lowest aggregated cost, refined by a parabola through it and its neighbours.
+   Confidence: how far the winner stands below the best candidate more than two steps away, in units of the
+   aggregated price of a jump.
+
+All disparities are of the widest filter pair in pixels of the planes handed in, + = farther than focus.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numba as nb
+import numpy as np
+
+from mca.processing.camera import FilterAperture
+from mca.processing.cost import cost_volume, stack_bands
+from mca.processing.features import display_gamma, feature_bands
+from mca.processing.sgm import aggregate
+
+_PATHS = 8  # semi-global aggregation paths: an isolated jump costs about this many P2
+
+
+@dataclass(frozen=True)
+class DenseParams:
+    """Parameters of the dense search, in pixels of the planes searched (the analysis grid)."""
+
+    window_px: int = 9  # side of the cost window
+    step_px: float = 0.5  # spacing of the candidate disparities
+    noise_floor: float = 2e-3  # feature amplitude treated as flat
+    coarse_weight: float = 1.0  # weight of the half-size cost beside the full-size one (0: none)
+    p1: float = 0.2  # SGM penalty of a one-step disparity change (cost units, for 0.5 px steps)
+    p2: float = 3.0  # SGM penalty of a larger jump (for 0.5 px steps)
+    alpha: float = 0.0  # how much image edges lower P2
+    narrow_range: bool = True  # find the occupied range on a quarter-size image first
+    range_margin_px: float = 2.0  # kept around the occupied range
+
+
+@dataclass
+class DenseDisparity:
+    """Per-pixel disparity on the analysis grid."""
+
+    disparity_px: np.ndarray  # (H, W) float32, sub-pixel
+    confidence: np.ndarray  # (H, W) float32 in [0, 1]
+    candidates_px: np.ndarray  # (D,) the candidates searched
+    search_range_px: tuple[float, float]  # the range they cover
+
+
+def candidate_disparities(range_px: tuple[float, float], step_px: float) -> np.ndarray:
+    """Evenly spaced candidates covering `range_px`, containing 0 exactly."""
+    low, high = range_px
+    return (np.arange(np.floor(low / step_px), np.ceil(high / step_px) + 1) * step_px).astype(np.float64)
+
+
+def _volume_hwd(bands: np.ndarray, aperture: FilterAperture, candidates: np.ndarray, params: DenseParams) -> np.ndarray:
+    return cost_volume(bands, aperture, candidates, params.window_px, params.noise_floor)
+
+
+def _upsampled(volume_dhw: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    h, w = shape
+    return np.stack([cv2.resize(s, (w, h), interpolation=cv2.INTER_LINEAR) for s in volume_dhw])
+
+
+@nb.njit(cache=True, parallel=True, fastmath=True)
+def _winner_kernel(
+    aggregated: np.ndarray, candidates: np.ndarray, scale: float, disparity: np.ndarray, confidence: np.ndarray
+) -> None:
+    h, w, count = aggregated.shape
+    step = candidates[1] - candidates[0] if count > 1 else 1.0
+    for y in nb.prange(h):
+        for x in range(w):
+            a = aggregated[y, x]
+            best = 0
+            for d in range(1, count):
+                if a[d] < a[best]:
+                    best = d
+            at = a[best]
+            offset = 0.0
+            if 0 < best < count - 1:
+                curvature = a[best - 1] - 2.0 * at + a[best + 1]
+                if curvature > 1e-9:
+                    offset = min(max(0.5 * (a[best - 1] - a[best + 1]) / curvature, -0.5), 0.5)
+            disparity[y, x] = candidates[best] + offset * step
+            second = np.inf
+            for d in range(count):
+                if abs(d - best) > 2 and a[d] < second:
+                    second = a[d]
+            if second == np.inf:
+                confidence[y, x] = 0.0
+            else:
+                confidence[y, x] = min(max((second - at) / scale, 0.0), 1.0)
+
+
+def _winner(aggregated: np.ndarray, candidates: np.ndarray, jump_cost: float) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel winner (parabola through the lowest aggregated cost and its neighbours) and confidence of an
+    (H, W, D) volume: how far the best candidate more than two steps away lies above the winner, in units of
+    `jump_cost` (the aggregated price of one jump on all paths), clipped to [0, 1]."""
+    h, w, _ = aggregated.shape
+    disparity = np.empty((h, w), np.float32)
+    confidence = np.empty((h, w), np.float32)
+    _winner_kernel(aggregated, np.asarray(candidates, np.float64), float(jump_cost), disparity, confidence)
+    return disparity, confidence
+
+
+def occupied_range(
+    planes: np.ndarray, aperture: FilterAperture, range_px: tuple[float, float], params: DenseParams
+) -> tuple[float, float]:
+    """The part of `range_px` the scene occupies, from a quick search on a quarter-size image (+ margin)."""
+    small = cv2.pyrDown(cv2.pyrDown(planes))
+    if min(small.shape[:2]) < 24:
+        return range_px
+    candidates = candidate_disparities((range_px[0] / 4.0, range_px[1] / 4.0), params.step_px)
+    if len(candidates) < 4:
+        return range_px
+    volume = _volume_hwd(stack_bands(feature_bands(small)), aperture, candidates, params)
+    aggregated = aggregate(
+        np.ascontiguousarray(volume.transpose(1, 2, 0)), display_gamma(small).mean(axis=2), params.p1, params.p2
+    )
+    disparity, _ = _winner(aggregated, candidates, _PATHS * params.p2)
+    low = float(np.percentile(disparity, 0.2)) * 4.0 - params.range_margin_px - 4.0 * params.step_px
+    high = float(np.percentile(disparity, 99.8)) * 4.0 + params.range_margin_px + 4.0 * params.step_px
+    return (max(range_px[0], low), min(range_px[1], high))
+
+
+def estimate_dense(
+    planes: np.ndarray, aperture: FilterAperture, range_px: tuple[float, float], params: DenseParams = DenseParams()
+) -> DenseDisparity:
+    """Dense disparity of (H, W, 3) linear colour planes over `range_px` (px of these planes)."""
+    planes = np.ascontiguousarray(planes, dtype=np.float32)
+    h, w = planes.shape[:2]
+    search = occupied_range(planes, aperture, range_px, params) if params.narrow_range else range_px
+    candidates = candidate_disparities(search, params.step_px)
+    volume = _volume_hwd(stack_bands(feature_bands(planes)), aperture, candidates, params)
+    if params.coarse_weight > 0 and min(h, w) >= 32:
+        half = cv2.pyrDown(planes)
+        coarse = _volume_hwd(stack_bands(feature_bands(half)), aperture, candidates / 2.0, params)
+        volume += np.float32(params.coarse_weight) * _upsampled(coarse, (h, w))
+        volume *= np.float32(1.0 / (1.0 + params.coarse_weight))
+    scale = params.step_px / 0.5  # penalties are given for 0.5 px steps
+    aggregated = aggregate(
+        np.ascontiguousarray(volume.transpose(1, 2, 0)),
+        display_gamma(planes).mean(axis=2),
+        params.p1 * scale,
+        params.p2 * scale,
+        params.alpha,
+    )
+    del volume
+    disparity, confidence = _winner(aggregated, candidates, _PATHS * params.p2 * scale)
+    return DenseDisparity(disparity, confidence, candidates, (float(candidates[0]), float(candidates[-1])))

@@ -1,0 +1,244 @@
+"""Sub-pixel refinement of the regions' disparity on the colour-alignment cost itself, with each region's support.
+
+The surfaces carry the dense (semi-global) disparity, whose per-pixel precision is a fraction of a pixel. A
+region (an object of the 2.1D sketch) has thousands of pixels; measured on the raw colour-line cost
+(`processing.cost`) with all of them, its disparity is known to a few hundredths of a pixel. The model is
+shifted by a set of offsets; for every cell (a square of `cell_px`) of every region the cost, weighted by
+texture, is summed at each offset and the parabola through the lowest sum gives that cell's own minimum. The
+region's correction is then a robust fit to its cells' minima: one level for a fronto-parallel or curved
+region, a plane for a slanted planar one. Cells, not pixels, vote: a few cells with bad data (a reflection, a
+disocclusion) cannot move the region.
+
+Occluding contours: the windows around an occluder's edge see the occluder's edge, at the occluder's
+disparity. Every pixel within half a window of a nearer region is therefore warped with that nearer region's
+model and does not count for its own region (it counts for the occluder only if it is the occluder's).
+
+Two passes: offsets `coarse_step_px` apart over +-`search_px`, then `fine_step_px` apart around each region's
+first-pass correction.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from mca.processing.camera import FilterAperture
+from mca.processing.cost import cost_at
+from mca.processing.features import texture_energy
+from mca.processing.surfaces import fit_planes, interior_weights
+
+
+@dataclass(frozen=True)
+class RefineParams:
+    """Parameters of the region refinement (pixels of the grid refined on)."""
+
+    search_px: float = 1.5  # first pass: offsets over +- this
+    coarse_step_px: float = 0.5
+    fine_step_px: float = 0.15  # second pass: 5 offsets this far apart around each region's first-pass result
+    cell_px: int = 32  # side of the cells whose minima vote
+    planar_tolerance_px: float = 0.3  # median |surfaces - region plane| of a planar region
+    window_px: int = 9
+    noise_floor: float = 2e-3
+
+
+@dataclass
+class Refinement:
+    """The refined model and, per region, its plane when planar."""
+
+    disparity_px: np.ndarray  # (H, W) float32
+    planes: dict[int, tuple[float, float, float] | None]  # region id -> plane (a, b, c) if planar, else None
+    offsets_px: dict[int, float]  # region id -> constant shift applied (curved regions)
+
+
+def _median_by_label(labels: np.ndarray, values: np.ndarray, count: int) -> np.ndarray:
+    """Median of `values` per label (flat arrays); inf for empty labels."""
+    order = np.lexsort((values, labels))
+    sorted_labels = labels[order]
+    sorted_values = values[order]
+    starts = np.searchsorted(sorted_labels, np.arange(count))
+    ends = np.searchsorted(sorted_labels, np.arange(count), side="right")
+    out = np.full(count, np.inf)
+    has = ends > starts
+    middle = (starts + ends - 1) // 2
+    out[has] = sorted_values[middle[has]]
+    return out
+
+
+def _owners(labels: np.ndarray, levels: np.ndarray, reach_px: int) -> np.ndarray:
+    """For every pixel the region whose model warps it: the nearest region (smallest level) within `reach_px`."""
+    count = levels.shape[0]
+    rank_of = np.empty(count, np.int64)
+    by_rank = np.argsort(levels, kind="stable")
+    rank_of[by_rank] = np.arange(count)
+    kernel = np.ones((2 * reach_px + 1, 2 * reach_px + 1), np.uint8)
+    nearest_rank = cv2.erode(rank_of[labels].astype(np.float32), kernel, borderType=cv2.BORDER_REPLICATE)
+    return by_rank[nearest_rank.astype(np.int64)]
+
+
+def _parabola_minima(curves: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per row of `curves` (n, K): the minimum of the parabola through the lowest sample and its neighbours
+    (offset units) and its curvature (0 where the minimum is at an end)."""
+    k = curves.shape[1]
+    best = np.argmin(curves, axis=1)
+    inner = np.clip(best, 1, k - 2)
+    rows = np.arange(curves.shape[0])
+    before, at, after = curves[rows, inner - 1], curves[rows, inner], curves[rows, inner + 1]
+    curvature = before - 2.0 * at + after
+    step = offsets[1] - offsets[0]
+    shift = np.where(curvature > 1e-12, 0.5 * (before - after) / np.maximum(curvature, 1e-12), 0.0)
+    minima = offsets[inner] + np.clip(shift, -1.0, 1.0) * step
+    interior = (best > 0) & (best < k - 1)
+    return minima, np.where(interior, curvature, 0.0)
+
+
+def _robust_level(values: np.ndarray, weights: np.ndarray) -> float:
+    """Weighted median of cell minima."""
+    order = np.argsort(values)
+    cumulative = np.cumsum(weights[order])
+    return float(values[order][np.searchsorted(cumulative, 0.5 * cumulative[-1])])
+
+
+def _robust_plane(xs: np.ndarray, ys: np.ndarray, values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Plane a x + b y + c through cell minima, reweighted twice (residuals beyond 2 robust sigmas dropped)."""
+    a = np.stack([xs, ys, np.ones_like(xs)], axis=1)
+    w = weights.copy()
+    coef = np.array([0.0, 0.0, _robust_level(values, weights)])
+    for _ in range(3):
+        if np.count_nonzero(w > 0) < 4:
+            break
+        aw = a * w[:, None]
+        coef = np.linalg.lstsq(aw.T @ a + np.eye(3) * 1e-9, aw.T @ values, rcond=None)[0]
+        residual = np.abs(values - a @ coef)
+        sigma = 1.4826 * np.median(residual[w > 0]) + 1e-3
+        w = weights * (residual < 2.0 * sigma + 0.05)
+    return coef
+
+
+def refine_regions(
+    bands: np.ndarray,
+    aperture: FilterAperture,
+    labels: np.ndarray,
+    model: np.ndarray,
+    params: RefineParams = RefineParams(),
+    fronto_parallel: set[int] | frozenset[int] = frozenset(),
+) -> Refinement:
+    """Refine the disparity `model` (H, W) region by region (`labels` 1..L) on the feature planes `bands`
+    ((B, 3, H, W), `processing.cost.stack_bands`); see the module docstring. Regions in `fronto_parallel` are
+    held to one level."""
+    h, w = labels.shape
+    count = int(labels.max()) + 1
+    lab = labels.ravel()
+    xs = np.arange(w, dtype=np.float32)[None, :]
+    ys = np.arange(h, dtype=np.float32)[:, None]
+
+    # region models: planar regions take their robust plane (one level if fronto-parallel), others the surfaces
+    planes = fit_planes(labels, count, model, interior_weights(labels, 2), 1e-3)
+    flat = np.zeros(count, bool)
+    flat[[i for i in fronto_parallel if 0 < i < count]] = True
+    levels = _median_by_label(lab, model.ravel(), count)
+    planes[flat] = np.stack([np.zeros(flat.sum()), np.zeros(flat.sum()), levels[flat]], axis=1)
+    plane_model = planes[labels, 0] * xs + planes[labels, 1] * ys + planes[labels, 2]
+    deviation = _median_by_label(lab, np.abs(model - plane_model).ravel(), count)
+    planar = deviation <= params.planar_tolerance_px
+    planar[0] = False
+    current = np.where(planar[labels], plane_model, model).astype(np.float32)
+
+    # who warps each pixel; which pixels vote for their own region, and with what weight
+    reach = params.window_px // 2 + 1
+    owner = _owners(labels, np.where(np.isfinite(levels), levels, np.inf), reach)
+    clear = owner == labels
+    feature_planes = [np.moveaxis(bands[b], 0, -1) for b in range(bands.shape[0])]
+    weights = np.where(clear, texture_energy(feature_planes, params.window_px), 0.0).astype(np.float32)
+    cells_x = (w + params.cell_px - 1) // params.cell_px
+    cell = (np.arange(h)[:, None] // params.cell_px) * cells_x + np.arange(w)[None, :] // params.cell_px
+    n_cells = int(cell.max()) + 1
+    bins = (lab * n_cells + cell.ravel()).astype(np.int64)
+    n_bins = count * n_cells
+    wflat = weights.ravel().astype(np.float64)
+    wsum = np.bincount(bins, wflat, n_bins)
+    used = np.nonzero(wsum > 0)[0]
+    bin_region = used // n_cells
+    bin_x = np.bincount(bins, wflat * np.tile(np.arange(w, dtype=np.float64), h), n_bins)[used] / wsum[used]
+    bin_y = np.bincount(bins, wflat * np.repeat(np.arange(h, dtype=np.float64), w), n_bins)[used] / wsum[used]
+
+    near_occluder = owner != labels
+
+    def curves(base: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+        """Per used (region, cell) bin and offset: the weighted cost sum of the model shifted by the offset."""
+        maps = np.stack([base + np.float32(o) for o in offsets]).astype(np.float32)
+        maps = _occluders_own_contours(maps, near_occluder, reach)
+        costs = cost_at(bands, aperture, maps, params.window_px, params.noise_floor)
+        return np.stack([np.bincount(bins, (c.ravel() * wflat), n_bins)[used] for c in costs], axis=1)
+
+    def solve(minima: np.ndarray, strength: np.ndarray, base: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per region: a new plane (a, b, c) and the constant shift, from its cells' minima."""
+        new = np.zeros((count, 3))
+        shift = np.zeros(count)
+        for rid in range(1, count):
+            sel = (bin_region == rid) & (strength > 0)
+            if not sel.any():
+                continue
+            vote = strength[sel] * wsum[used][sel]
+            if planar[rid] and not flat[rid] and sel.sum() >= 4:
+                cx, cy = bin_x[sel], bin_y[sel]
+                values = base[rid, 0] * cx + base[rid, 1] * cy + base[rid, 2] + minima[sel]
+                new[rid] = _robust_plane(cx, cy, values, vote)
+            else:
+                shift[rid] = _robust_level(minima[sel], vote)
+        return new, shift
+
+    coarse = np.arange(-params.search_px, params.search_px + 1e-9, params.coarse_step_px)
+    minima, strength = _parabola_minima(curves(current, coarse), coarse)
+    new_planes, shift = solve(minima, strength, planes)
+    first = np.where(planar[:, None] & ~flat[:, None], new_planes, 0.0)
+    # second pass around each region's first-pass result
+    after_first = _apply(current, labels, planar & ~flat, first, shift, xs, ys)
+    fine = np.arange(-2, 3) * params.fine_step_px
+    minima, strength = _parabola_minima(curves(after_first, fine), fine)
+    base_planes = np.where(planar[:, None] & ~flat[:, None], first, planes)
+    base_planes[:, 2] += np.where(planar & ~flat, 0.0, shift)
+    new_planes, shift2 = solve(minima, strength, base_planes)
+    final = _apply(after_first, labels, planar & ~flat, new_planes, shift2, xs, ys)
+    total_shift = shift + shift2
+
+    result_planes: dict[int, tuple[float, float, float] | None] = {}
+    for rid in range(1, count):
+        if planar[rid] and not flat[rid]:
+            result_planes[rid] = tuple(float(v) for v in new_planes[rid])  # type: ignore[assignment]
+        elif planar[rid]:
+            result_planes[rid] = (0.0, 0.0, float(levels[rid] + total_shift[rid]))
+        else:
+            result_planes[rid] = None
+    return Refinement(final, result_planes, {rid: float(total_shift[rid]) for rid in range(1, count)})
+
+
+def _apply(
+    current: np.ndarray,
+    labels: np.ndarray,
+    replace: np.ndarray,
+    planes: np.ndarray,
+    shift: np.ndarray,
+    xs: np.ndarray,
+    ys: np.ndarray,
+) -> np.ndarray:
+    """Regions in `replace` take their new plane; the others are shifted by their constant."""
+    out = current + shift[labels].astype(np.float32)
+    if replace.any():
+        plane_map = planes[labels, 0] * xs + planes[labels, 1] * ys + planes[labels, 2]
+        out = np.where(replace[labels], plane_map, out)
+    return out.astype(np.float32)
+
+
+def _occluders_own_contours(maps: np.ndarray, near_occluder: np.ndarray, reach_px: int) -> np.ndarray:
+    """Each map with the pixels within `reach_px` of a nearer region warped at the smallest disparity within
+    that reach, i.e. the occluder's: its edge is sampled where it is, not where this region's model would put it."""
+    if not near_occluder.any():
+        return maps
+    kernel = np.ones((2 * reach_px + 1, 2 * reach_px + 1), np.uint8)
+    out = maps.copy()
+    for k in range(maps.shape[0]):
+        nearest = cv2.erode(maps[k], kernel, borderType=cv2.BORDER_REPLICATE)
+        out[k][near_occluder] = nearest[near_occluder]
+    return out

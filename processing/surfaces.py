@@ -1,0 +1,329 @@
+"""Surfaces: superpixels that follow the image's edges, each a slanted disparity plane chosen with its neighbours.
+
+Where a surface has texture the dense disparity (`processing.dense`) is right; where it has none, or beside an
+occluding edge (whose disparity the window-based cost spreads onto the farther side), it is not. Surfaces
+carry the depth across: the image is cut into superpixels along its colour edges (SLIC on the fringe-free
+image), each superpixel gets a robust plane fitted to the dense disparity, and then each superpixel chooses
+one plane among its own and those of its neighbours within two rings, minimising
+
+    E = sum_s sum_(x in s) min(|d(x) - P_s(x)|, tau_data)                                    (data)
+      + lam * sum_(s,t adjacent) len_st * exp(-|c_s - c_t|^2 / sigma^2) * min(tau, |P_s - P_t|_boundary)
+
+(smoothness: neighbours of similar colour should continue each other's plane across their shared boundary).
+The minimisation is iterated conditional modes over the superpixels (compiled with numba). A plane
+(a, b, c) gives disparity a x + b y + c at pixel (x, y) of the analysis grid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numba as nb
+import numpy as np
+from skimage.segmentation import slic
+
+
+@dataclass(frozen=True)
+class SurfaceParams:
+    """Parameters of the superpixel surfaces (pixels of the analysis grid)."""
+
+    superpixel_px: int = 550  # mean superpixel area
+    compactness: float = 10.0  # SLIC: colour versus position
+    interior_px: int = 2  # pixels this close to a superpixel's edge weigh little in its plane fit
+    slope_ridge: float = 1e-2  # ridge on the plane slopes (per pixel of support), towards fronto-parallel
+    rings: int = 2  # candidate planes: the superpixel's own and its neighbours' within this many rings
+    data_clip_px: float = 2.0  # tau_data
+    smoothness: float = 3.0  # lam
+    colour_sigma: float = 0.3  # sigma, on display-gamma colour in [0, 1]
+    jump_clip_px: float = 2.0  # tau
+    boundary_samples: int = 10  # points per shared boundary at which two planes are compared
+    sweeps: int = 10
+
+
+@dataclass
+class Surfaces:
+    """Superpixels and their planes on the analysis grid."""
+
+    labels: np.ndarray  # (H, W) int32, 0..n-1
+    planes: np.ndarray  # (n, 3) float64 chosen plane (a, b, c) of each superpixel
+    fitted: np.ndarray  # (n, 3) float64 each superpixel's own fit to the dense disparity
+    colours: np.ndarray  # (n, 3) float64 mean display colour
+    areas: np.ndarray  # (n,) int64 pixels
+    pairs: np.ndarray  # (m, 2) int64 adjacent superpixels (i < j)
+    pair_lengths: np.ndarray  # (m,) int64 shared boundary length in pixel edges
+
+    @property
+    def count(self) -> int:
+        return int(self.planes.shape[0])
+
+    def disparity(self, planes: np.ndarray | None = None) -> np.ndarray:
+        """(H, W) float32 disparity of the plane of each pixel's superpixel."""
+        return plane_map(self.labels, self.planes if planes is None else planes)
+
+
+def plane_map(labels: np.ndarray, planes: np.ndarray) -> np.ndarray:
+    """(H, W) float32: a x + b y + c with each pixel's plane (a, b, c) = planes[labels]."""
+    h, w = labels.shape
+    coef = planes.astype(np.float32)[labels]
+    xs = np.arange(w, dtype=np.float32)[None, :]
+    ys = np.arange(h, dtype=np.float32)[:, None]
+    return coef[..., 0] * xs + coef[..., 1] * ys + coef[..., 2]
+
+
+def superpixels(image: np.ndarray, params: SurfaceParams = SurfaceParams()) -> np.ndarray:
+    """(H, W) int32 SLIC labels 0..n-1 of an (H, W, 3) float image in [0, 1], about `superpixel_px` pixels each."""
+    h, w = image.shape[:2]
+    count = max(4, int(round(h * w / params.superpixel_px)))
+    labels = slic(image, n_segments=count, compactness=params.compactness, start_label=0, channel_axis=-1)
+    _, dense = np.unique(labels, return_inverse=True)
+    return dense.reshape(h, w).astype(np.int32)
+
+
+def interior_weights(labels: np.ndarray, margin_px: int) -> np.ndarray:
+    """1 where a pixel's (2 margin + 1)^2 neighbourhood lies in its own superpixel, 0.05 elsewhere."""
+    if margin_px <= 0:
+        return np.ones(labels.shape, np.float32)
+    lab = labels.astype(np.float32)
+    kernel = np.ones((2 * margin_px + 1, 2 * margin_px + 1), np.uint8)
+    inside = (cv2.erode(lab, kernel) == lab) & (cv2.dilate(lab, kernel) == lab)
+    return np.where(inside, np.float32(1.0), np.float32(0.05))
+
+
+def fit_planes(
+    labels: np.ndarray, count: int, disparity: np.ndarray, weights: np.ndarray, slope_ridge: float, iterations: int = 4
+) -> np.ndarray:
+    """Robust weighted least-squares plane per label: (count, 3) float64 (a, b, c).
+
+    Iteratively reweighted: residuals beyond 1.5 sigmas are down-weighted (Huber), beyond 4 sigmas + 1 px dropped; a
+    ridge of `slope_ridge` per unit weight pulls the slopes towards 0 (small or degenerate supports)."""
+    h, w = labels.shape
+    lab = labels.ravel()
+    xs = np.tile(np.arange(w, dtype=np.float64), h)
+    ys = np.repeat(np.arange(h, dtype=np.float64), w)
+    d = disparity.ravel().astype(np.float64)
+    wt = weights.ravel().astype(np.float64)
+    coef = np.zeros((count, 3))
+    robust = wt
+    for iteration in range(iterations):
+        if iteration > 0:
+            residual = d - (coef[lab, 0] * xs + coef[lab, 1] * ys + coef[lab, 2])
+            spread = np.bincount(lab, wt * residual * residual, count) / np.maximum(np.bincount(lab, wt, count), 1e-12)
+            sigma = np.maximum(np.sqrt(spread), 0.25)[lab]
+            ratio = np.abs(residual) / (1.5 * sigma)
+            robust = wt / np.maximum(1.0, ratio) * (np.abs(residual) < 4.0 * sigma + 1.0)
+        s1 = np.bincount(lab, robust, count)
+        sx = np.bincount(lab, robust * xs, count)
+        sy = np.bincount(lab, robust * ys, count)
+        a = np.empty((count, 3, 3))
+        a[:, 0, 0] = np.bincount(lab, robust * xs * xs, count)
+        a[:, 0, 1] = a[:, 1, 0] = np.bincount(lab, robust * xs * ys, count)
+        a[:, 1, 1] = np.bincount(lab, robust * ys * ys, count)
+        a[:, 0, 2] = a[:, 2, 0] = sx
+        a[:, 1, 2] = a[:, 2, 1] = sy
+        a[:, 2, 2] = s1
+        rhs = np.stack(
+            [
+                np.bincount(lab, robust * xs * d, count),
+                np.bincount(lab, robust * ys * d, count),
+                np.bincount(lab, robust * d, count),
+            ],
+            axis=1,
+        )
+        # a ridge on the slopes (the offset is free, so it acts about the support's centroid)
+        ridge = slope_ridge * np.maximum(s1, 1e-9)
+        a[:, 0, 0] += ridge
+        a[:, 1, 1] += ridge
+        a[:, 2, 2] += 1e-9
+        coef = np.linalg.solve(a, rhs[..., None])[..., 0]
+        coef[s1 <= 1e-9] = 0.0
+    return coef
+
+
+@dataclass
+class _Graph:
+    pairs: np.ndarray  # (m, 2) i < j
+    lengths: np.ndarray  # (m,)
+    sample_ptr: np.ndarray  # (m + 1,)
+    sample_xy: np.ndarray  # (k, 2) float64 boundary points of each pair
+    nb_ptr: np.ndarray  # (n + 1,) directed neighbour lists
+    nb_other: np.ndarray
+    nb_pair: np.ndarray
+    cand_ptr: np.ndarray  # (n + 1,) candidate planes of each superpixel
+    cand_list: np.ndarray
+    pix_ptr: np.ndarray  # (n + 1,) pixels of each superpixel, sorted
+    pix_index: np.ndarray
+
+
+def _graph(labels: np.ndarray, count: int, rings: int, samples: int) -> _Graph:
+    _h, _w = labels.shape
+    # boundary pixel edges (horizontal and vertical neighbours with different labels)
+    ya, xa = np.nonzero(labels[:, :-1] != labels[:, 1:])
+    yb, xb = np.nonzero(labels[:-1] != labels[1:])
+    first = np.concatenate([labels[ya, xa], labels[yb, xb]]).astype(np.int64)
+    second = np.concatenate([labels[ya, xa + 1], labels[yb + 1, xb]]).astype(np.int64)
+    px = np.concatenate([xa + 0.5, xb.astype(np.float64)])
+    py = np.concatenate([ya.astype(np.float64), yb + 0.5])
+    lo, hi = np.minimum(first, second), np.maximum(first, second)
+    key = lo * count + hi
+    order = np.argsort(key, kind="stable")
+    key, px, py = key[order], px[order], py[order]
+    uniq, start, lengths = np.unique(key, return_index=True, return_counts=True)
+    pairs = np.stack([uniq // count, uniq % count], axis=1)
+    # up to `samples` evenly spaced points per pair
+    rank = np.arange(key.size) - np.repeat(start, lengths)
+    stride = np.maximum(1, lengths // samples)
+    keep = (rank % np.repeat(stride, lengths) == 0) & (rank // np.repeat(stride, lengths) < samples)
+    kept_pair = np.repeat(np.arange(uniq.size), lengths)[keep]
+    sample_xy = np.stack([px[keep], py[keep]], axis=1)
+    sample_ptr = np.concatenate([[0], np.cumsum(np.bincount(kept_pair, minlength=uniq.size))])
+    # directed neighbour lists
+    m = pairs.shape[0]
+    src = np.concatenate([pairs[:, 0], pairs[:, 1]])
+    dst = np.concatenate([pairs[:, 1], pairs[:, 0]])
+    pid = np.concatenate([np.arange(m), np.arange(m)])
+    order = np.argsort(src, kind="stable")
+    src, dst, pid = src[order], dst[order], pid[order]
+    nb_ptr = np.concatenate([[0], np.cumsum(np.bincount(src, minlength=count))])
+    # candidates: neighbours within `rings`
+    neighbours = [dst[nb_ptr[s] : nb_ptr[s + 1]] for s in range(count)]
+    cand: list[np.ndarray] = []
+    for s in range(count):
+        seen = {s}
+        frontier = [s]
+        for _ in range(rings):
+            nxt = []
+            for f in frontier:
+                for t in neighbours[f]:
+                    t = int(t)
+                    if t not in seen:
+                        seen.add(t)
+                        nxt.append(t)
+            frontier = nxt
+        cand.append(np.array(sorted(seen), np.int64))
+    cand_ptr = np.concatenate([[0], np.cumsum([c.size for c in cand])]).astype(np.int64)
+    flat = labels.ravel()
+    pix_index = np.argsort(flat, kind="stable").astype(np.int64)
+    pix_ptr = np.concatenate([[0], np.cumsum(np.bincount(flat, minlength=count))]).astype(np.int64)
+    return _Graph(
+        pairs.astype(np.int64),
+        lengths.astype(np.int64),
+        sample_ptr.astype(np.int64),
+        sample_xy,
+        nb_ptr.astype(np.int64),
+        dst.astype(np.int64),
+        pid.astype(np.int64),
+        cand_ptr,
+        np.concatenate(cand),
+        pix_ptr,
+        pix_index,
+    )
+
+
+@nb.njit(cache=True, parallel=True, fastmath=True)
+def _data_terms(disparity, width, planes, pix_ptr, pix_index, cand_ptr, cand_list, clip):  # type: ignore[no-untyped-def]
+    n = pix_ptr.shape[0] - 1
+    out = np.zeros(cand_list.shape[0], np.float64)
+    flat = disparity.ravel()
+    for s in nb.prange(n):
+        for k in range(cand_ptr[s], cand_ptr[s + 1]):
+            p = cand_list[k]
+            a, b, c = planes[p, 0], planes[p, 1], planes[p, 2]
+            acc = 0.0
+            for i in range(pix_ptr[s], pix_ptr[s + 1]):
+                idx = pix_index[i]
+                y = idx // width
+                x = idx - y * width
+                acc += min(abs(flat[idx] - (a * x + b * y + c)), clip)
+            out[k] = acc
+    return out
+
+
+@nb.njit(cache=True)
+def _icm(
+    planes, cand_ptr, cand_list, data, nb_ptr, nb_other, nb_pair, weight, sample_ptr, sample_xy, jump_clip, sweeps
+):  # type: ignore[no-untyped-def]
+    n = cand_ptr.shape[0] - 1
+    label = np.arange(n)
+    for _ in range(sweeps):
+        changed = 0
+        for s in range(n):
+            best = label[s]
+            best_value = np.inf
+            for k in range(cand_ptr[s], cand_ptr[s + 1]):
+                p = cand_list[k]
+                value = data[k]
+                for j in range(nb_ptr[s], nb_ptr[s + 1]):
+                    q = label[nb_other[j]]
+                    if q == p:
+                        continue
+                    pair = nb_pair[j]
+                    total = 0.0
+                    samples = sample_ptr[pair + 1] - sample_ptr[pair]
+                    for i in range(sample_ptr[pair], sample_ptr[pair + 1]):
+                        x = sample_xy[i, 0]
+                        y = sample_xy[i, 1]
+                        total += abs(
+                            (planes[p, 0] - planes[q, 0]) * x
+                            + (planes[p, 1] - planes[q, 1]) * y
+                            + planes[p, 2]
+                            - planes[q, 2]
+                        )
+                    if samples > 0:
+                        value += weight[j] * min(jump_clip, total / samples)
+                if value < best_value:
+                    best_value = value
+                    best = p
+            if best != label[s]:
+                label[s] = best
+                changed += 1
+        if changed == 0:
+            break
+    return label
+
+
+def build_surfaces(
+    image: np.ndarray, disparity: np.ndarray, params: SurfaceParams = SurfaceParams(), labels: np.ndarray | None = None
+) -> Surfaces:
+    """Superpixels of `image` (H, W, 3 display colour in [0, 1], fringe-free) with a plane each, chosen to fit
+    `disparity` (H, W) and to continue their neighbours' planes (see the module docstring)."""
+    if labels is None:
+        labels = superpixels(image, params)
+    count = int(labels.max()) + 1
+    areas = np.bincount(labels.ravel(), minlength=count)
+    colours = (
+        np.stack(
+            [np.bincount(labels.ravel(), image[..., c].ravel().astype(np.float64), count) for c in range(3)], axis=1
+        )
+        / np.maximum(areas, 1)[:, None]
+    )
+    fitted = fit_planes(labels, count, disparity, interior_weights(labels, params.interior_px), params.slope_ridge)
+    graph = _graph(labels, count, params.rings, params.boundary_samples)
+    data = _data_terms(
+        np.ascontiguousarray(disparity, np.float32),
+        labels.shape[1],
+        fitted,
+        graph.pix_ptr,
+        graph.pix_index,
+        graph.cand_ptr,
+        graph.cand_list,
+        float(params.data_clip_px),
+    )
+    src = np.repeat(np.arange(count), np.diff(graph.nb_ptr))
+    similarity = np.exp(-np.sum((colours[src] - colours[graph.nb_other]) ** 2, axis=1) / params.colour_sigma**2)
+    weight = params.smoothness * graph.lengths[graph.nb_pair] * similarity
+    chosen = _icm(
+        fitted,
+        graph.cand_ptr,
+        graph.cand_list,
+        data,
+        graph.nb_ptr,
+        graph.nb_other,
+        graph.nb_pair,
+        weight.astype(np.float64),
+        graph.sample_ptr,
+        graph.sample_xy,
+        float(params.jump_clip_px),
+        int(params.sweeps),
+    )
+    return Surfaces(labels, fitted[chosen], fitted, colours, areas, graph.pairs, graph.lengths)
