@@ -77,6 +77,13 @@ def register(app: typer.Typer) -> None:
             help="Run on a Dask distributed scheduler (shared filesystem).",
         ),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress, only the summary."),
+        max_megapixels: float | None = typer.Option(
+            None,
+            "--max-megapixels",
+            metavar="MP",
+            help="Refuse inputs larger than MP megapixels before decoding them "
+            "(default: $MCA_MAX_MEGAPIXELS, else 100).",
+        ),
     ) -> None:
         """Process photographs into OUT/<stem>/: depth.tiff, regions.png, result.json, all_in_focus.png, layers/,
         scene.ply and scene.glb (docs/outputs.md). Finished folders are skipped unless --force; exits 1 when any
@@ -92,11 +99,26 @@ def register(app: typer.Typer) -> None:
             profile, workers, out = chosen["profile"], chosen["workers"], chosen["output_dir"]
         except ConfigError as exc:
             typer.echo(f"error: {exc}", err=True)
-            raise typer.Exit(2)
+            raise typer.Exit(2) from None
         try:
             camera_profile = resolve_profile(str(profile))
         except ProfileError as exc:
             typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(2) from None
+        from mca.capture.raw import default_max_megapixels, parse_megapixels
+
+        try:
+            max_megapixels = (
+                default_max_megapixels()
+                if max_megapixels is None
+                else parse_megapixels(max_megapixels, "--max-megapixels")
+            )
+        except ValueError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(2) from None
+        missing = [str(p) for p in inputs if not p.exists() and not p.is_symlink()]
+        if missing:
+            typer.echo(f"error: no such file or folder: {', '.join(missing)}; check the path", err=True)
             raise typer.Exit(2)
         if out.exists() and not out.is_dir():
             typer.echo(f"error: --out {out} is a file; give a folder for the outputs", err=True)
@@ -138,12 +160,13 @@ def register(app: typer.Typer) -> None:
                 settle_s=settle,
                 progress=progress,
                 recorder=live,
+                max_megapixels=max_megapixels,
             )
         except BatchError as exc:
             typer.echo(f"error: {exc}", err=True)
             if live is not None:
                 live.close()
-            raise typer.Exit(2)
+            raise typer.Exit(2) from None
         print_summary(report)
         if live is not None:
             import time

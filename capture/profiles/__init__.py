@@ -23,17 +23,17 @@ def load_profile_file(path: str | Path) -> CameraProfile:
     try:
         text = path.read_bytes().decode("utf-8")
     except FileNotFoundError:
-        raise ProfileError("<file>", "no such file; give a built-in name (mca profile list) or a path", source)
+        raise ProfileError("<file>", "no such file; give a built-in name (mca profile list) or a path", source) from None
     except IsADirectoryError:
-        raise ProfileError("<file>", "is a directory, not a profile TOML file", source)
+        raise ProfileError("<file>", "is a directory, not a profile TOML file", source) from None
     except UnicodeDecodeError as exc:
-        raise ProfileError("<file>", f"is not UTF-8 text ({exc.reason} at byte {exc.start})", source)
+        raise ProfileError("<file>", f"is not UTF-8 text ({exc.reason} at byte {exc.start})", source) from None
     except OSError as exc:
-        raise ProfileError("<file>", f"cannot be read: {exc.strerror}", source)
+        raise ProfileError("<file>", f"cannot be read: {exc.strerror}", source) from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise ProfileError("<file>", f"is not valid TOML: {exc}", source)
+        raise ProfileError("<file>", f"is not valid TOML: {exc}", source) from None
     return profile_from_mapping(data, source)
 
 
