@@ -63,6 +63,7 @@ def capture(
     stop = threading.Event()
     try:
         session.connect()
+        earlier = process_unfinished(session) if process else []
         if tethered:
             typer.echo("waiting for shots from the camera's shutter button; Ctrl-C to stop", err=True)
             try:
@@ -72,6 +73,7 @@ def capture(
                 results = []
         else:
             results = session.capture(count, interval)
+        results = earlier + results
         for r in results:
             typer.echo(f"shot {r.shot_id}: {r.status} {r.path or ''} {r.message}".rstrip())
     except TransportError as exc:
@@ -82,6 +84,15 @@ def capture(
     failed = [r for r in results if r.status in ("failed", "captured")]
     if failed:
         raise typer.Exit(1)
+
+
+def process_unfinished(session) -> list:
+    """Process the shots an earlier run downloaded but did not finish processing (killed, disk full)."""
+    results = []
+    for row in session.catalog.unprocessed():
+        typer.echo(f"  processing {row.file_name} (shot {row.id}), left unprocessed by an earlier run", err=True)
+        results.append(session._process(row.id, session.out_dir / row.file_name))
+    return results
 
 
 def register(app: typer.Typer) -> None:
