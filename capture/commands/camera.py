@@ -9,6 +9,11 @@ camera_app = typer.Typer(help="Tethered camera: list, info, config, and the simu
 CAMERA_OPTION = typer.Option("auto", "--camera", "-c", help="auto, sim, usb:BUS:ADDR or ptpip:HOST:PORT")
 
 
+def _message(exc: Exception) -> str:
+    """The text of an error: a KeyError's own message, not its quoted repr."""
+    return str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
+
+
 def _open(spec: str):
     from mca.capture.tether import camera_factory
     from mca.devices.ptp.transport import TransportError
@@ -89,7 +94,7 @@ def config(
             try:
                 pv = cam.set_property(name, value)  # type: ignore[arg-type]
             except (KeyError, ValueError) as exc:
-                typer.echo(f"error: {exc}", err=True)
+                typer.echo(f"error: {_message(exc)}", err=True)
                 raise typer.Exit(2) from exc
             typer.echo(f"{pv.name} = {pv.value}")
             return
@@ -99,7 +104,7 @@ def config(
                 pv = cam.get_property(n)  # type: ignore[arg-type]
             except KeyError as exc:
                 if name:
-                    typer.echo(f"error: {exc}", err=True)
+                    typer.echo(f"error: {_message(exc)}", err=True)
                     raise typer.Exit(2) from exc
                 continue
             typer.echo(f"{pv.name} = {pv.value}")
