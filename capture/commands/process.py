@@ -20,6 +20,16 @@ def resolve_profile(name: str | None):
     return load_profile(name or DEFAULT_PROFILE)
 
 
+def stop_on_sigterm() -> None:
+    """Make SIGTERM (systemctl stop, kill) end this process like Ctrl-C does: through its `finally` blocks."""
+    import signal
+
+    def interrupted(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    signal.signal(signal.SIGTERM, interrupted)
+
+
 def register(app: typer.Typer) -> None:
     @app.command("process")
     def process(
@@ -143,41 +153,46 @@ def register(app: typer.Typer) -> None:
                 raise typer.Exit(2)
             from mca.capture.recording import RerunRecorder
 
-            live = RerunRecorder(None, serve=True, bind=bind)
+            stop_on_sigterm()  # a service stop must reach the `finally` below, or the viewer server is orphaned
+            try:
+                live = RerunRecorder(None, serve=True, bind=bind)
+            except RuntimeError as exc:
+                typer.echo(f"error: {exc}", err=True)
+                raise typer.Exit(2) from None
             typer.echo(f"rerun viewer: {live.viewer_url}", err=True)
         try:
-            report = run_batch(
-                list(inputs),
-                out,
-                camera_profile,
-                workers=workers,
-                cluster=cluster,
-                force=force,
-                record=record,
-                watch=watch,
-                watch_timeout_s=watch_timeout,
-                poll_interval_s=poll_interval,
-                settle_s=settle,
-                progress=progress,
-                recorder=live,
-                max_megapixels=max_megapixels,
-            )
-        except BatchError as exc:
-            typer.echo(f"error: {exc}", err=True)
-            if live is not None:
-                live.close()
-            raise typer.Exit(2) from None
-        print_summary(report)
-        if live is not None:
-            import time
-
-            typer.echo(f"still serving the viewer at {live.viewer_url}; Ctrl-C to stop", err=True)
             try:
-                while True:
-                    time.sleep(1.0)
-            except KeyboardInterrupt:
-                pass
-            finally:
+                report = run_batch(
+                    list(inputs),
+                    out,
+                    camera_profile,
+                    workers=workers,
+                    cluster=cluster,
+                    force=force,
+                    record=record,
+                    watch=watch,
+                    watch_timeout_s=watch_timeout,
+                    poll_interval_s=poll_interval,
+                    settle_s=settle,
+                    progress=progress,
+                    recorder=live,
+                    max_megapixels=max_megapixels,
+                )
+            except BatchError as exc:
+                typer.echo(f"error: {exc}", err=True)
+                raise typer.Exit(2) from None
+            print_summary(report)
+            if live is not None and not report.interrupted:
+                import time
+
+                typer.echo(f"still serving the viewer at {live.viewer_url}; Ctrl-C to stop", err=True)
+                try:
+                    while True:
+                        time.sleep(1.0)
+                except KeyboardInterrupt:
+                    pass
+        finally:
+            if live is not None:
                 live.close()
         if report.failed:
             raise typer.Exit(1)
