@@ -772,9 +772,11 @@ def _read_with_libraw(p: Path, kind: str) -> RawFrame:
     try:
         with rawpy.imread(str(p)) as raw:
             return _frame_from_libraw(p, kind, raw, meta)
+    except RawReadError:
+        raise
     except rawpy.LibRawError as e:
         raise _libraw_failure(p, kind, e) from None
-    except (OSError, ValueError, MemoryError) as e:
+    except Exception as e:  # a hostile file can make the decoder fail in any way: say so, never a traceback
         raise RawReadError(
             p,
             f"could not be decoded as {kind.upper()} ({type(e).__name__}: {e})",
@@ -874,14 +876,19 @@ def _demosaic_raw(frame: RawFrame) -> np.ndarray:
 # --------------------------------------------------------------------------
 
 
-def _to_rgb(arr: np.ndarray) -> np.ndarray:
-    if arr.ndim == 2:
-        return np.repeat(arr[..., None], 3, axis=-1)
-    if arr.ndim == 3 and arr.shape[-1] >= 3:
-        return arr[..., :3]
-    if arr.ndim == 3 and arr.shape[-1] == 1:
-        return np.repeat(arr, 3, axis=-1)
-    raise ValueError(f"unexpected image shape {arr.shape}")
+def _to_rgb(arr: np.ndarray, p: Path | None = None) -> np.ndarray:
+    if 0 not in arr.shape:
+        if arr.ndim == 2:
+            return np.repeat(arr[..., None], 3, axis=-1)
+        if arr.ndim == 3 and arr.shape[-1] >= 3:
+            return arr[..., :3]
+        if arr.ndim == 3 and arr.shape[-1] in (1, 2):  # grey, grey + alpha
+            return np.repeat(arr[..., :1], 3, axis=-1)
+    raise RawReadError(
+        p or Path("?"),
+        f"holds an image of shape {arr.shape}, not rows x columns (x colours)",
+        "The file is damaged or not a photograph; export it again as RGB",
+    )
 
 
 def _rgb_frame(p: Path, kind: str, rgb: np.ndarray, meta: dict[str, Any]) -> RawFrame:
@@ -922,7 +929,7 @@ def _read_8bit_style(p: Path, kind: str) -> RawFrame:
     _refuse_source_samples(p, img)
     if img.ndim == 3 and img.shape[-1] >= 3:
         img = cv2.cvtColor(img[..., :3], cv2.COLOR_BGR2RGB)
-    rgb = _to_rgb(img)
+    rgb = _to_rgb(img, p)
     scale = 255.0 if rgb.dtype == np.uint8 else 65535.0
     linear = srgb_to_linear(rgb.astype(np.float32) / np.float32(scale))
     tiff = None
@@ -944,12 +951,14 @@ def _read_tiff(p: Path) -> RawFrame:
             arr = page.asarray()
             if arr.ndim == 3 and page.planarconfig == tifffile.PLANARCONFIG.SEPARATE:
                 arr = np.moveaxis(arr, 0, -1)
-    except (tifffile.TiffFileError, ValueError, OSError, MemoryError) as e:
+    except RawReadError:
+        raise
+    except Exception as e:  # tifffile fails on hostile files with many exception types
         raise RawReadError(
             p, f"could not be decoded as TIFF ({e})", "Export the image again as an uncompressed 16-bit RGB TIFF"
         ) from None
     _refuse_source_samples(p, arr)
-    rgb = _to_rgb(arr)
+    rgb = _to_rgb(arr, p)
     if rgb.dtype == np.uint16:
         linear = rgb.astype(np.float32) / np.float32(65535)  # 16-bit TIFF: linear
     elif rgb.dtype == np.uint8:
