@@ -10,6 +10,10 @@ Schema version 1 (kept in the `schema_versions` table, row `shots`):
   (its result folder finished) or `failed` (`message` says why). `pending()` lists what still
   needs work; `unprocessed()` the shots on disk whose processing did not finish.
 
+The catalog always records what the camera took, even on a full disk: it keeps a reserve file of
+1 MiB beside it (`catalog.sqlite-reserve`, next to SQLite's -wal and -shm files) and gives that
+space back to SQLite when a write fails for lack of space; a later run makes it again.
+
 A catalog without a version (version 0, the first one) is migrated in place when opened: its
 local times without offset are read as this machine's local time and converted to UTC, and its
 result paths, which were relative to whatever folder the writer ran in, are made relative to the
@@ -48,6 +52,7 @@ _VERSIONS = """
 CREATE TABLE IF NOT EXISTS schema_versions (name TEXT PRIMARY KEY, version INTEGER NOT NULL);
 """
 _TIME_COLUMNS = ("captured_at", "downloaded_at", "processed_at")
+RESERVE_BYTES = 1 << 20
 
 
 class CatalogError(RuntimeError):
@@ -111,8 +116,50 @@ class Catalog:
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
         self.folder = self.path.resolve().parent
+        self.reserve = self.folder / f"{self.path.name}-reserve"  # beside SQLite's own -wal and -shm
+        self._make_reserve()
         self.db = open_database(self.path, _SHOTS + _VERSIONS)
         self._migrate()
+
+    # -- a full disk ---------------------------------------------------------------------------------------------
+
+    def _make_reserve(self) -> None:
+        """Set aside RESERVE_BYTES on the catalog's disk, if there is room (else the next run tries again)."""
+        if self.reserve.exists():
+            return
+        try:
+            fd = os.open(self.reserve, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        except OSError:
+            return
+        try:
+            try:
+                os.posix_fallocate(fd, 0, RESERVE_BYTES)
+            except (AttributeError, OSError):
+                os.write(fd, bytes(RESERVE_BYTES))
+            os.fsync(fd)
+        except OSError:
+            os.close(fd)
+            self.reserve.unlink(missing_ok=True)
+            return
+        os.close(fd)
+
+    def _write(self, sql: str, parameters: tuple = ()) -> sqlite3.Cursor:
+        """Execute and commit one change; when the disk is full, give the reserve back to SQLite and try once more."""
+        for attempt in range(2):
+            try:
+                cursor = self.db.execute(sql, parameters)
+                self.db.commit()
+                return cursor
+            except sqlite3.OperationalError as exc:
+                self.db.rollback()
+                if "full" not in str(exc) or attempt or not self.reserve.exists():
+                    raise CatalogError(
+                        f"{self.path}: cannot record the change ({exc}); "
+                        + ("free some space on its disk; " if "full" in str(exc) else "")
+                        + "shots stay on the camera's card and are fetched by the next run"
+                    ) from None
+                self.reserve.unlink(missing_ok=True)
+        raise AssertionError("unreachable")
 
     def close(self) -> None:
         self.db.close()
@@ -187,41 +234,35 @@ class Catalog:
     def add_captured(
         self, camera_serial: str, camera_filename: str, camera_handle: int | None, size_bytes: int | None
     ) -> int:
-        cur = self.db.execute(
+        cur = self._write(
             "INSERT INTO shots (camera_serial, camera_filename, camera_handle, size_bytes, captured_at, status)"
             " VALUES (?, ?, ?, ?, ?, 'captured')",
             (camera_serial, camera_filename, camera_handle, size_bytes, _now()),
         )
-        self.db.commit()
         return int(cur.lastrowid)
 
     def mark_downloaded(self, shot_id: int, file_name: str, size_bytes: int, sha256: str) -> None:
-        self.db.execute(
+        self._write(
             "UPDATE shots SET file_name=?, size_bytes=?, sha256=?, downloaded_at=?, status='downloaded',"
             " message=NULL WHERE id=?",
             (file_name, size_bytes, sha256, _now(), shot_id),
         )
-        self.db.commit()
 
     def mark_processed(self, shot_id: int, result_path: str | Path) -> None:
         """The shot's result folder is finished; `result_path` is stored relative to the catalog when inside it."""
-        self.db.execute(
+        self._write(
             "UPDATE shots SET processed_at=?, status='processed', result_path=?, message=NULL WHERE id=?",
             (_now(), self.stored_path(result_path), shot_id),
         )
-        self.db.commit()
 
     def mark_failed(self, shot_id: int, message: str) -> None:
-        self.db.execute("UPDATE shots SET status='failed', message=? WHERE id=?", (message, shot_id))
-        self.db.commit()
+        self._write("UPDATE shots SET status='failed', message=? WHERE id=?", (message, shot_id))
 
     def note(self, shot_id: int, message: str) -> None:
-        self.db.execute("UPDATE shots SET message=? WHERE id=?", (message, shot_id))
-        self.db.commit()
+        self._write("UPDATE shots SET message=? WHERE id=?", (message, shot_id))
 
     def update_handle(self, shot_id: int, handle: int) -> None:
-        self.db.execute("UPDATE shots SET camera_handle=? WHERE id=?", (handle, shot_id))
-        self.db.commit()
+        self._write("UPDATE shots SET camera_handle=? WHERE id=?", (handle, shot_id))
 
     # -- queries -------------------------------------------------------------------------------------------------
 
@@ -236,9 +277,12 @@ class Catalog:
         return ShotRow(*row)
 
     def missing(self, camera_serial: str) -> list[ShotRow]:
-        """Shots the camera took that never reached the disk."""
+        """Shots the camera took that never reached the disk: not downloaded yet, or a download that failed
+        (a full disk, a pulled cable); the next connection fetches them."""
         cur = self.db.execute(
-            "SELECT * FROM shots WHERE camera_serial=? AND status='captured' ORDER BY id", (camera_serial,)
+            "SELECT * FROM shots WHERE camera_serial=? AND (status='captured' OR (status='failed'"
+            " AND downloaded_at IS NULL)) ORDER BY id",
+            (camera_serial,),
         )
         return [ShotRow(*r) for r in cur.fetchall()]
 
@@ -252,8 +296,9 @@ class Catalog:
         return [ShotRow(*r) for r in cur.fetchall() if self.resolve(r[4]).is_file()]  # type: ignore[union-attr]
 
     def pending(self) -> list[ShotRow]:
-        """Shots still waiting for work: not yet downloaded, or downloaded and not processed."""
-        cur = self.db.execute("SELECT * FROM shots WHERE status IN ('captured', 'downloaded') ORDER BY id")
+        """Shots still waiting for work: everything not processed (captured, downloaded, or failed with the
+        reason in `message`); later runs retry them."""
+        cur = self.db.execute("SELECT * FROM shots WHERE status != 'processed' ORDER BY id")
         return [ShotRow(*r) for r in cur.fetchall()]
 
     def file_names(self) -> set[str]:

@@ -899,9 +899,11 @@ class RerunRecorder:
         if self._closed:
             return
         self._closed = True
-        self._stream.flush()
-        self._stream.disconnect()
-        self._stop_server()  # the browser keeps what it received
+        try:
+            self._stream.flush()
+            self._stream.disconnect()
+        finally:
+            self._stop_server()  # even when the file could not be written (a full disk); the browser keeps its data
 
     def __enter__(self) -> RerunRecorder:
         return self
