@@ -152,3 +152,36 @@ def test_disagreements_name_what_differs(tmp_path):
         assert any("no result.json" in p for p in catalog.disagreements())
         os.remove(tmp_path / "IMG_0001.CR2")
         assert any("is missing" in p for p in catalog.disagreements())
+
+
+def test_a_full_disk_cannot_stop_the_catalog_recording_a_shot(tmp_path, monkeypatch):
+    """SQLite reports a full disk: the catalog gives back its reserve and the insert goes through."""
+    with Catalog(tmp_path / "catalog.sqlite") as catalog:
+        assert catalog.reserve.stat().st_size == 1 << 20
+        real = catalog.db
+        calls = {"n": 0}
+
+        class FullOnce:
+            def execute(self, *args):
+                calls["n"] += 1
+                if calls["n"] == 1:
+                    raise sqlite3.OperationalError("database or disk is full")
+                return real.execute(*args)
+
+            def __getattr__(self, name):
+                return getattr(real, name)
+
+        catalog.db = FullOnce()
+        shot = catalog.add_captured("S", "IMG_0001.CR2", 1, 10)
+        catalog.db = real
+        assert catalog.get(shot).status == "captured" and not catalog.reserve.exists()
+    with Catalog(tmp_path / "catalog.sqlite") as catalog:  # the next run finds room: the reserve is back
+        assert catalog.reserve.stat().st_size == 1 << 20
+
+
+def test_a_failed_download_is_fetched_again(tmp_path):
+    with Catalog(tmp_path / "catalog.sqlite") as catalog:
+        shot = catalog.add_captured("S", "IMG_0001.CR2", 1, 10)
+        catalog.mark_failed(shot, "No space left on device")
+        assert [r.id for r in catalog.missing("S")] == [shot]  # a full disk: not given up
+        assert [r.id for r in catalog.pending()] == [shot]

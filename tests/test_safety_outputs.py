@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import errno
 import json
+import os
 import threading
 import time
 from pathlib import Path
@@ -290,3 +291,38 @@ def test_a_failure_half_way_leaves_no_partial_folder(tmp_path, profile):
     assert outcome.status == "failed"
     assert visible(tmp_path / "out") == set()
     assert [p.name for p in (tmp_path / "out").iterdir()] == [".mca.lock"]
+
+
+def test_watch_takes_a_reshot_file_again(tmp_path, profile):
+    """In watch mode a file replaced by a new photograph of the same name is processed again once settled."""
+    inbox = tmp_path / "inbox"
+    inbox.mkdir()
+    make_png(inbox / "IMG_1.png", 48, 64)
+    holder: dict = {}
+
+    def watch() -> None:
+        holder["report"] = run_batch(
+            [inbox],
+            tmp_path / "out",
+            profile,
+            watch=True,
+            watch_timeout_s=3.0,
+            poll_interval_s=0.1,
+            settle_s=0.5,
+            pipeline=fake_pipeline,
+        )
+
+    thread = threading.Thread(target=watch)
+    thread.start()
+    try:
+        deadline = time.monotonic() + 30
+        while not (tmp_path / "out" / "IMG_1" / RESULT_NAME).exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert result_of(tmp_path / "out" / "IMG_1")["input_size_px"] == [64, 48]
+        reshot = make_png(tmp_path / "new.png", 40, 56)
+        os.replace(reshot, inbox / "IMG_1.png")
+    finally:
+        thread.join(timeout=60)
+    assert not thread.is_alive()
+    assert [o.status for o in holder["report"].outcomes] == ["done", "done"]
+    assert result_of(tmp_path / "out" / "IMG_1")["input_size_px"] == [56, 40]
