@@ -2,9 +2,10 @@
 """Set up a fresh machine and run the project: `python3 dev.py demo` or `python3 dev.py test`.
 
 Needs only Python >= 3.11 with pip. Creates `.venv` when missing, installs the
-project with its test extras whenever pyproject.toml changed, and on Debian
-(as root) installs the system tools the tests use as independent
-references: exiftool, gphoto2 and shellcheck.
+project with its test and lint extras whenever pyproject.toml changed, and on
+Debian (as root) installs the system tools the tests use as independent
+references: exiftool, gphoto2, shellcheck, tiffinfo (libtiff-tools), pngcheck,
+and node, with the Khronos glTF validator from npm into .venv/node.
 """
 
 from __future__ import annotations
@@ -20,7 +21,17 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent
 VENV = ROOT / ".venv"
 BIN = VENV / "bin"
-SYSTEM_TOOLS = {"exiftool": "libimage-exiftool-perl", "gphoto2": "gphoto2", "shellcheck": "shellcheck"}
+SYSTEM_TOOLS = {
+    "exiftool": "libimage-exiftool-perl",
+    "gphoto2": "gphoto2",
+    "shellcheck": "shellcheck",
+    "tiffinfo": "libtiff-tools",
+    "pngcheck": "pngcheck",
+    "node": "nodejs",
+    "npm": "npm",
+}
+GLTF_VALIDATOR = "gltf-validator@2.0.0-dev.3.10"  # the Khronos glTF validator, compiled to JavaScript
+NODE_PREFIX = VENV / "node"
 
 
 def _say(message: str) -> None:
@@ -38,7 +49,7 @@ def ensure_venv() -> None:
         return
     _say("installing the project and its test dependencies into .venv (about a minute)")
     subprocess.run([str(python), "-m", "pip", "install", "-q", "--upgrade", "pip"], check=True)
-    subprocess.run([str(python), "-m", "pip", "install", "-q", "-e", f"{ROOT}[test]"], check=True)
+    subprocess.run([str(python), "-m", "pip", "install", "-q", "-e", f"{ROOT}[test,lint]"], check=True)
     stamp.write_text(digest)
 
 
@@ -60,6 +71,26 @@ def ensure_system_tools() -> None:
         _say(f"apt-get could not install {', '.join(missing)}; tests that use them will skip")
 
 
+def ensure_gltf_validator() -> None:
+    """npm install the Khronos glTF validator into .venv/node (tests/tools.py finds it there)."""
+    marker = NODE_PREFIX / "node_modules" / "gltf-validator" / "package.json"
+    if marker.exists() and GLTF_VALIDATOR.split("@")[1] in marker.read_text(encoding="utf-8"):
+        return
+    npm = shutil.which("npm")
+    if npm is None:
+        _say("npm is missing: the glTF validator test will skip (and fail on CI)")
+        return
+    _say(f"installing {GLTF_VALIDATOR} with npm into {NODE_PREFIX}")
+    NODE_PREFIX.mkdir(parents=True, exist_ok=True)
+    result = subprocess.run(
+        [npm, "install", "--no-audit", "--no-fund", "--silent", "--prefix", str(NODE_PREFIX), GLTF_VALIDATOR],
+        check=False,
+        stdout=subprocess.DEVNULL,
+    )
+    if result.returncode != 0:
+        _say("npm could not install the glTF validator; its test will skip (and fail on CI)")
+
+
 def main(argv: list[str]) -> int:
     if len(argv) < 1 or argv[0] not in {"demo", "test"}:
         print(__doc__)
@@ -70,6 +101,7 @@ def main(argv: list[str]) -> int:
     if argv[0] == "demo":
         return subprocess.call([str(BIN / "mca"), "demo", "--out", "demo-out", *argv[1:]], env=env)
     ensure_system_tools()
+    ensure_gltf_validator()
     return subprocess.call([str(BIN / "python"), "-m", "pytest", *argv[1:]], env=env)
 
 

@@ -55,7 +55,7 @@ def main() -> None:
     for name, mosaic in mosaics.items():
         for preview in (False, True):
             size = len(cr2_bytes(mosaic, preview=preview))
-            med, times, cpu = _median_s(lambda: cr2_bytes(mosaic, preview=preview), args.runs)
+            med, times, cpu = _median_s(lambda m=mosaic, p=preview: cr2_bytes(m, preview=p), args.runs)
             print(
                 f"  {name:36s} preview={preview!s:5s} median {med:.2f} s "
                 f"(min {min(times):.2f}, max {max(times):.2f}; CPU {cpu:.2f} s), file {size / 1e6:.1f} MB"

@@ -338,7 +338,11 @@ class SimBench:
         distance = self.plan.distance_mm(self.carriage_rail_mm())
         self.distances_shot_mm.append(distance)
         shot = render_scene(target_scene(distance), self.profile, optics=self.optics, seed=self.seed + index)
-        offset_px = self.deviation.disparity_offset_px * self.optics.height_px / self.profile.height_px
+        offset_px = (
+            self.deviation.disparity_offset_px
+            * self.optics.height_px
+            / (self.profile.height_px or self.optics.height_px)
+        )
         if offset_px:
             mosaic = misregister_red(shot.mosaic, offset_px, baseline_direction(self.optics.aperture))
             shot = dataclasses.replace(shot, mosaic=mosaic)

@@ -101,7 +101,24 @@ def open_database(path: Path, schema: str) -> sqlite3.Connection:
             f"{path}: cannot be opened as the catalog ({exc}); if the disk is full, free space; if the file is "
             "damaged, move it aside (the shots themselves are the files beside it)"
         ) from None
+    try:
+        record_software(db)
+        db.commit()
+    except sqlite3.OperationalError:  # a full disk: the version note waits for the next run, the catalog works
+        db.rollback()
     return db
+
+
+def record_software(db: sqlite3.Connection) -> None:
+    """Note in the catalog which software version last wrote to it (table `software`, one row per name)."""
+    from mca import __version__
+
+    db.execute("CREATE TABLE IF NOT EXISTS software (name TEXT PRIMARY KEY, version TEXT NOT NULL, seen_at TEXT)")
+    db.execute(
+        "INSERT INTO software (name, version, seen_at) VALUES ('mca-appliance', ?, ?) "
+        "ON CONFLICT(name) DO UPDATE SET version = excluded.version, seen_at = excluded.seen_at",
+        (__version__, _now()),
+    )
 
 
 def schema_version(db: sqlite3.Connection) -> int:

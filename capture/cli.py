@@ -15,13 +15,35 @@ os.environ.pop("FORCE_RERUN_ANALYTICS", None)
 os.environ.setdefault("RERUN_ANALYTICS", "0")
 os.environ.setdefault("TELEMETRY_ENABLED", "false")
 
+HELP_OPTIONS = {"help_option_names": ["-h", "--help"]}  # -h as well as --help, on every command
+
 app = typer.Typer(
     name="mca",
     help="Accurate-depth 3D imaging from one multi-colour-filter-aperture photograph.",
     no_args_is_help=True,
-    add_completion=False,
+    add_completion=True,  # --install-completion / --show-completion for bash, zsh, fish
     pretty_exceptions_enable=False,
+    # Help texts are plain text: rich markup would turn "usb:BUS:ADDR" into "usb🚌ADDR" (its :bus: emoji code).
+    rich_markup_mode=None,
+    context_settings=HELP_OPTIONS,
 )
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        from mca import __version__
+
+        typer.echo(f"mca {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: bool = typer.Option(
+        False, "--version", "-V", help="Print the version and exit.", callback=_print_version, is_eager=True
+    ),
+) -> None:
+    """Accurate-depth 3D imaging from one multi-colour-filter-aperture photograph."""
 
 
 def _register_commands() -> None:

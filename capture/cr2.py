@@ -131,7 +131,9 @@ class Cr2Metadata:
     capture_time: datetime = field(default_factory=lambda: datetime(2024, 1, 1, 12, 0, 0))
     lens_model: str | None = "EF50mm f/1.8 STM"
     focus_distance_m: float | None = None
-    wb_rggb: tuple[int, int, int, int] = (2048, 1024, 1024, 1536)  # as-shot WB levels, 1024 = 1.0
+    # As-shot white balance levels R, G, G, B (1024 = a gain of 1). The simulated camera renders a white
+    # surface as equal R, G and B (its pixels are neutral), so as shot means no gain at all.
+    wb_rggb: tuple[int, int, int, int] = (1024, 1024, 1024, 1024)
     serial_number: str | None = None
 
 
@@ -284,7 +286,7 @@ def _entropy_coded_scan(rows: np.ndarray, components: int, precision: int) -> tu
         total_bits = sum(block_bits)
         out = np.zeros((total_bits + 31) // 32 + 1, dtype=np.uint32)
         jobs = [(d, s, b) for (d, s, _), b in zip(blocks, start_bits)]
-        for first, words in pool.map(lambda job: _pack_block(*job, code_of, len_of), jobs):
+        for first, words in pool.map(lambda job: _pack_block(job[0], job[1], job[2], code_of, len_of), jobs):
             out[first : first + words.size] |= words
     data = out.astype(">u4").view(np.uint8)[: (total_bits + 7) // 8].copy()
     if total_bits & 7:
@@ -438,9 +440,20 @@ def _jpeg_rows(frame: np.ndarray, slices: tuple[int, int, int]) -> np.ndarray:
     return stream.reshape(frame.shape)
 
 
-def _preview_images(mosaic: np.ndarray, black_level: int, white_level: int) -> tuple[bytes, bytes, np.ndarray]:
-    """A preview JPEG (IFD0), thumbnail JPEG (IFD1) and small RGB image (IFD2), all sRGB 8-bit."""
+def _preview_images(
+    mosaic: np.ndarray, black_level: int, white_level: int, wb_rggb: tuple[int, int, int, int] = (1024,) * 4
+) -> tuple[bytes, bytes, np.ndarray]:
+    """A preview JPEG (IFD0), thumbnail JPEG (IFD1) and small RGB image (IFD2), all sRGB 8-bit.
+
+    Camera RGB with the as-shot white balance `wb_rggb` applied, as the camera's own previews are
+    (no colour matrix: the encoder knows none).
+    """
     import cv2
+
+    from mca.processing.colour import linear_to_srgb8
+
+    red, green, _, blue = (float(v) for v in wb_rggb)
+    gains = np.array([red / green, 1.0, blue / green], dtype=np.float32)
 
     def rgb_at(step: int) -> np.ndarray:
         r = mosaic[0::step, 0::step].astype(np.float32)
@@ -450,8 +463,7 @@ def _preview_images(mosaic: np.ndarray, black_level: int, white_level: int) -> t
         w = min(r.shape[1], g.shape[1], b.shape[1])
         lin = np.stack([r[:h, :w], g[:h, :w], b[:h, :w]], axis=-1)
         lin = np.clip((lin - black_level) / max(white_level - black_level, 1), 0.0, 1.0)
-        srgb = np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * np.power(lin, 1 / 2.4) - 0.055)
-        return np.round(srgb * 255).astype(np.uint8)
+        return linear_to_srgb8(lin * gains)
 
     step = max(2, 2 * (mosaic.shape[1] // 1440))
     preview = rgb_at(step)
@@ -589,7 +601,7 @@ def cr2_bytes(
     chain = ["ifd0"]
     ifds: dict[str, list[_Entry]] = {"ifd0": ifd0}
     if preview:
-        big, thumb, small = _preview_images(mosaic, black_level, white_level)
+        big, thumb, small = _preview_images(mosaic, black_level, white_level, meta.wb_rggb)
         ifd0 += [
             _longs(0x0100, [0]),
             _longs(0x0101, [0]),  # patched below with the preview size
@@ -617,6 +629,8 @@ def cr2_bytes(
         import cv2  # only for the size of the preview JPEG
 
         decoded = cv2.imdecode(np.frombuffer(big, np.uint8), cv2.IMREAD_UNCHANGED)
+        if decoded is None:
+            raise ValueError("the preview JPEG just encoded could not be decoded")
         ifd0[-5] = _longs(0x0100, [decoded.shape[1]])
         ifd0[-4] = _longs(0x0101, [decoded.shape[0]])
         blobs.update(preview=big, thumb=thumb, small=small.tobytes())
@@ -692,4 +706,4 @@ def write_cr2(
     )
     from mca.capture.outputs import write_bytes_atomic
 
-    return write_bytes_atomic(path, data)
+    return write_bytes_atomic(Path(path), data)

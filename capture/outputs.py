@@ -25,6 +25,8 @@ from typing import Any
 
 import numpy as np
 
+from mca.processing import colour
+
 TEMP_SUFFIX = ".tmp"
 
 
@@ -67,41 +69,9 @@ def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
 # --- images ---------------------------------------------------------------------------------------------------------
 
 
-@functools.lru_cache(maxsize=1)
-def _srgb8_table() -> np.ndarray:
-    """8-bit sRGB of linear values k / 65535 (IEC 61966-2-1 transfer curve)."""
-    x = np.arange(65536, dtype=np.float64) / 65535.0
-    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
-    return np.round(srgb * 255.0).astype(np.uint8)
-
-
-SRGB_CHUNK_VALUES = 1 << 18  # values converted per pass: the temporaries stay in cache, none is full size
-
-
-def linear_to_srgb8(linear: np.ndarray) -> np.ndarray:
-    """Linear light in [0, 1] to 8-bit sRGB (IEC 61966-2-1 curve, through a 16-bit table); clipped, NaN as 0."""
-    x = np.asarray(linear, dtype=np.float32)
-    flat = x.reshape(-1)
-    out = np.empty(flat.shape, np.uint8)
-    table = _srgb8_table()
-    scaled = np.empty(min(flat.size, SRGB_CHUNK_VALUES), np.float32)
-    index = np.empty(scaled.shape, np.uint16)
-    for start in range(0, flat.size, SRGB_CHUNK_VALUES):
-        part = flat[start : start + SRGB_CHUNK_VALUES]
-        s, i = scaled[: part.size], index[: part.size]
-        np.fmax(part, np.float32(0.0), out=s)  # fmax/fmin drop NaN: NaN and -inf to 0, +inf to 1
-        np.fmin(s, np.float32(1.0), out=s)
-        np.multiply(s, np.float32(65535.0), out=s)
-        np.add(s, np.float32(0.5), out=s)
-        np.copyto(i, s, casting="unsafe")  # truncation: round half up
-        np.take(table, i, out=out[start : start + part.size])
-    return out.reshape(x.shape)
-
-
-def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
-    """sRGB-encoded values in [0, 1] to linear light (inverse of the IEC 61966-2-1 curve), float32."""
-    x = np.asarray(encoded, dtype=np.float32)
-    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4)).astype(np.float32)
+# The sRGB curve has one home, processing/colour.py; these names stay for the writers' callers.
+linear_to_srgb8 = colour.linear_to_srgb8
+srgb_to_linear = colour.srgb_decode
 
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -125,7 +95,7 @@ def _png_scanlines(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     rows = samples.reshape(samples.shape[0], -1).view(np.uint8)
     height, width = rows.shape
     words = rows.view(np.uint64) if width % 8 == 0 else rows
-    zero = ~words.any(axis=1)
+    zero = np.asarray(~words.any(axis=1), dtype=bool)
     lines = np.zeros((height, width + 1), np.uint8)
     filled = np.flatnonzero(~zero)
     if filled.size:
@@ -158,14 +128,31 @@ def _deflate_zlib(lines: np.ndarray, zero_rows: np.ndarray) -> bytes:
             parts.append(_deflated_zeros(segment.nbytes))
             continue
         compressor = zlib.compressobj(PNG_DEFLATE_LEVEL, zlib.DEFLATED, -15, 9, zlib.Z_RLE)
-        parts.append(compressor.compress(segment) + compressor.flush(zlib.Z_FULL_FLUSH))
+        parts.append(compressor.compress(segment.tobytes()) + compressor.flush(zlib.Z_FULL_FLUSH))
     parts.append(b"\x03\x00")  # empty final fixed-Huffman block
-    parts.append(struct.pack(">I", zlib.adler32(lines)))
+    parts.append(struct.pack(">I", zlib.adler32(lines.data)))
     return b"".join(parts)
 
 
-def encode_png(image: np.ndarray) -> bytes:
+PNG_SRGB_INTENT_PERCEPTUAL = 0
+PNG_GAMA_SRGB = 45455  # gAMA of sRGB, 1/2.2 x 100000, written beside sRGB as the PNG spec recommends (11.3.3.5)
+# cHRM of sRGB: white point and primaries x, y times 100000 (PNG spec 11.3.3.5)
+PNG_CHRM_SRGB = (31270, 32900, 64000, 33000, 30000, 60000, 15000, 6000)
+
+
+def _png_text_chunk(keyword: str, text: str) -> bytes:
+    """An iTXt chunk (UTF-8, uncompressed): keyword, then the text; keywords are 1-79 Latin-1 characters."""
+    key = keyword.encode("latin-1")
+    if not 1 <= len(key) <= 79:
+        raise ValueError(f"PNG text keyword must be 1-79 characters, got {keyword!r}")
+    return _png_chunk(b"iTXt", key + b"\0\0\0\0\0" + text.encode("utf-8"))
+
+
+def encode_png(image: np.ndarray, *, srgb: bool = False, text: dict[str, str] | None = None) -> bytes:
     """PNG bytes of a uint8/uint16 image: (H, W) grey, (H, W, 3) RGB or (H, W, 4) RGBA.
+
+    `srgb=True` marks the samples as sRGB (sRGB chunk, with the gAMA and cHRM a decoder without sRGB
+    support falls back on); `text` adds one iTXt chunk per item (e.g. "Description", "Software").
 
     Written here rather than by OpenCV: Up-filtered rows and zlib level 1 with run-length matching
     encode a 20 MP layer several times faster at a similar size, and zlib releases the GIL, so
@@ -179,34 +166,108 @@ def encode_png(image: np.ndarray) -> bytes:
         raise ValueError(f"PNG image must be (H, W), (H, W, 3) or (H, W, 4), got shape {image.shape}")
     height, width = image.shape[:2]
     header = struct.pack(">IIBBBBB", width, height, 8 * image.dtype.itemsize, PNG_COLOUR_TYPES[channels], 0, 0, 0)
-    return b"".join(
-        [
-            PNG_SIGNATURE,
-            _png_chunk(b"IHDR", header),
-            _png_chunk(b"IDAT", _deflate_zlib(*_png_scanlines(image))),
-            _png_chunk(b"IEND", b""),
+    chunks = [PNG_SIGNATURE, _png_chunk(b"IHDR", header)]
+    if srgb:
+        chunks += [
+            _png_chunk(b"sRGB", bytes([PNG_SRGB_INTENT_PERCEPTUAL])),
+            _png_chunk(b"gAMA", struct.pack(">I", PNG_GAMA_SRGB)),
+            _png_chunk(b"cHRM", struct.pack(">8I", *PNG_CHRM_SRGB)),
         ]
-    )
+    for keyword, value in (text or {}).items():
+        chunks.append(_png_text_chunk(keyword, value))
+    chunks += [_png_chunk(b"IDAT", _deflate_zlib(*_png_scanlines(image))), _png_chunk(b"IEND", b"")]
+    return b"".join(chunks)
 
 
-def write_png(path: str | Path, image: np.ndarray) -> Path:
-    """Write a uint8/uint16 grey, RGB or RGBA image as PNG, atomically."""
-    return write_bytes_atomic(path, encode_png(image))
+def write_png(path: str | Path, image: np.ndarray, *, srgb: bool = False, text: dict[str, str] | None = None) -> Path:
+    """Write a uint8/uint16 grey, RGB or RGBA image as PNG, atomically (see `encode_png` for the chunks)."""
+    return write_bytes_atomic(path, encode_png(image, srgb=srgb, text=text))
+
+
+def read_png_text(data: bytes) -> dict[str, str]:
+    """The tEXt/iTXt (uncompressed) chunks of PNG bytes, keyword -> text, and which of sRGB/gAMA/cHRM are present."""
+    if not data.startswith(PNG_SIGNATURE):
+        raise ValueError("not a PNG file")
+    found: dict[str, str] = {}
+    at = len(PNG_SIGNATURE)
+    while at + 8 <= len(data):
+        length, kind = struct.unpack(">I4s", data[at : at + 8])
+        body = data[at + 8 : at + 8 + length]
+        if kind == b"tEXt":
+            key, _, value = body.partition(b"\0")
+            found[key.decode("latin-1")] = value.decode("latin-1")
+        elif kind == b"iTXt":
+            key, _, rest = body.partition(b"\0")
+            if rest[:1] == b"\0":  # uncompressed
+                _lang, _, rest = rest[2:].partition(b"\0")
+                _translated, _, value = rest.partition(b"\0")
+                found[key.decode("latin-1")] = value.decode("utf-8")
+        elif kind in (b"sRGB", b"gAMA", b"cHRM"):
+            found[f"chunk:{kind.decode()}"] = body.hex()
+        elif kind == b"IEND":
+            break
+        at += 12 + length
+    return found
 
 
 TIFF_DEFLATE_LEVEL = 1  # depth maps are piecewise constant: level 1 is 180x smaller than raw at 1/8 s per 20 MP
 
 
-def write_tiff_float32(path: str | Path, image: np.ndarray) -> Path:
-    """Write a 2-D array as a single-page float32 TIFF (NaN kept), deflate-compressed, atomically."""
+TIFF_TAG_GDAL_METADATA = 42112  # GDAL's XML metadata (units, descriptions), ASCII
+TIFF_TAG_GDAL_NODATA = 42113  # GDAL's nodata value, ASCII
+
+
+def gdal_metadata_xml(unit: str, description: str, items: dict[str, str] | None = None) -> str:
+    """The GDAL_METADATA tag's XML: the band's unit type and description, plus dataset items."""
+    from xml.sax.saxutils import escape, quoteattr
+
+    lines = ["<GDALMetadata>"]
+    for name, value in (items or {}).items():
+        lines.append(f"  <Item name={quoteattr(name)}>{escape(value)}</Item>")
+    lines.append(f'  <Item name="DESCRIPTION" sample="0" role="description">{escape(description)}</Item>')
+    lines.append(f'  <Item name="UNITTYPE" sample="0" role="unittype">{escape(unit)}</Item>')
+    lines.append("</GDALMetadata>")
+    return "\n".join(lines)
+
+
+def write_tiff_float32(
+    path: str | Path,
+    image: np.ndarray,
+    *,
+    description: dict[str, Any] | None = None,
+    unit: str | None = None,
+    software: str | None = None,
+    nodata: float | None = None,
+) -> Path:
+    """Write a 2-D array as a single-page float32 TIFF (NaN kept), deflate-compressed, atomically.
+
+    `description` goes into ImageDescription as JSON; `software` into Software; `unit` (with the
+    description's "meaning") into GDAL_METADATA and `nodata` into GDAL_NODATA ("nan" for NaN), the
+    tags GDAL, QGIS and rasterio read.
+    """
     import tifffile
 
     array = np.ascontiguousarray(image, dtype=np.float32)
     if array.ndim != 2:
         raise ValueError(f"expected a 2-D map, got shape {array.shape}")
+    extratags: list[tuple[int, str, int, str, bool]] = []
+    if unit is not None:
+        meaning = str((description or {}).get("meaning", ""))
+        xml = gdal_metadata_xml(unit, meaning)
+        extratags.append((TIFF_TAG_GDAL_METADATA, "s", 0, xml, True))
+    if nodata is not None:
+        extratags.append((TIFF_TAG_GDAL_NODATA, "s", 0, "nan" if math.isnan(nodata) else repr(float(nodata)), True))
     with atomic_path(path) as tmp:
         tifffile.imwrite(
-            tmp, array, photometric="minisblack", compression="zlib", compressionargs={"level": TIFF_DEFLATE_LEVEL}
+            tmp,
+            array,
+            photometric="minisblack",
+            compression="zlib",
+            compressionargs={"level": TIFF_DEFLATE_LEVEL},
+            description=None if description is None else json.dumps(json_safe(description), ensure_ascii=True),
+            metadata=None,
+            software=software,
+            extratags=extratags,
         )
     return Path(path)
 
@@ -275,7 +336,7 @@ def encode_ply(points_mm: np.ndarray, colours_rgb8: np.ndarray, comments: tuple[
     header += [f"comment {c}" for c in comments]
     header += [f"element vertex {len(points)}"]
     header += [
-        f"property {'float' if vertices.dtype[name].kind == 'f' else 'uchar'} {name}" for name in PLY_VERTEX.names
+        f"property {'float' if vertices.dtype[name].kind == 'f' else 'uchar'} {name}" for name in PLY_VERTEX.names or ()
     ]
     header += ["end_header"]
     return ("\n".join(header) + "\n").encode("ascii") + vertices.tobytes()
@@ -327,34 +388,15 @@ _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
 _COMPONENTS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
 _COMPONENT_DTYPES = {5120: "i1", 5121: "u1", 5122: "<i2", 5123: "<u2", 5125: "<u4", 5126: "<f4"}
 
-# Camera frame (x right, y down, z forward, mm) to glTF (x right, y up, z toward the viewer, metres).
-CAMERA_MM_TO_GLTF_M = (
-    0.001,
-    0.0,
-    0.0,
-    0.0,
-    0.0,
-    -0.001,
-    0.0,
-    0.0,
-    0.0,
-    0.0,
-    -0.001,
-    0.0,
-    0.0,
-    0.0,
-    0.0,
-    1.0,
-)  # column-major, as glTF stores node matrices
-
 
 @dataclass(frozen=True)
 class TexturedQuad:
-    """A flat rectangle in the camera frame (mm): corners top-left, top-right, bottom-right, bottom-left
-    as seen in the image; `texture_png` covers it with the image's top-left at the top-left corner."""
+    """A flat quadrilateral in the scene frame (metres, glTF axes: x right, y up, the camera looking down -z):
+    corners top-left, top-right, bottom-right, bottom-left as seen in the image; `texture_png` covers it
+    with the image's top-left at the top-left corner."""
 
     name: str
-    corners_mm: np.ndarray  # (4, 3) float
+    corners_m: np.ndarray  # (4, 3) float
     texture_png: bytes
     extras: dict[str, Any] | None = None
 
@@ -363,17 +405,30 @@ def _pad4(data: bytes, fill: bytes = b"\0") -> bytes:
     return data + fill * (-len(data) % 4)
 
 
+@dataclass(frozen=True)
+class GltfCamera:
+    """A glTF perspective camera at the origin looking down -z (the camera that took the photograph)."""
+
+    yfov_rad: float
+    aspect_ratio: float
+    znear_m: float = 0.05
+    name: str = "camera"
+    extras: dict[str, Any] | None = None
+
+
 def encode_glb(
     quads: list[TexturedQuad],
     *,
-    root_matrix: tuple[float, ...] = CAMERA_MM_TO_GLTF_M,
-    root_name: str = "camera frame (mm)",
+    camera: GltfCamera | None = None,
+    root_name: str = "scene",
     generator: str = "mca-appliance capture.outputs",
+    asset_extras: dict[str, Any] | None = None,
 ) -> bytes:
     """glTF 2.0 binary: one unlit, double-sided, alpha-blended textured quad per entry, under one root node.
 
-    Vertex positions stay in the quads' own units (mm, camera frame); the root node's matrix
-    maps them into glTF's frame (metres, y up, looking down -z).
+    Vertex positions are the quads' corners as given: metres in glTF's frame (y up, looking down -z);
+    no node carries a transform. `camera` adds a camera node at the origin (glTF cameras look down
+    their node's -z with +y up, which is the photograph's camera in this frame).
     """
     blob = bytearray()
     buffer_views: list[dict[str, Any]] = []
@@ -403,10 +458,10 @@ def encode_glb(
         return len(accessors) - 1
 
     texcoords = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype="<f4")
-    indices = np.array([0, 3, 2, 0, 2, 1], dtype="<u2")  # counter-clockwise seen from the camera (glTF +z)
+    indices = np.array([0, 3, 2, 0, 2, 1], dtype="<u2")  # counter-clockwise seen from the camera
     meshes, materials, textures, images, nodes = [], [], [], [], []
     for quad in quads:
-        corners = np.asarray(quad.corners_mm, dtype="<f4").reshape(4, 3)
+        corners = np.asarray(quad.corners_m, dtype="<f4").reshape(4, 3)
         if not np.isfinite(corners).all():
             raise ValueError(f"quad '{quad.name}' has non-finite corners")
         position = accessor(corners, "VEC3", _FLOAT, _ARRAY_BUFFER, bounds=True)
@@ -443,15 +498,37 @@ def encode_glb(
         if quad.extras:
             node["extras"] = json_safe(quad.extras)
         nodes.append(node)
-    root: dict[str, Any] = {"name": root_name, "matrix": list(root_matrix)}
+    cameras = []
+    if camera is not None:
+        cameras.append(
+            {
+                "name": camera.name,
+                "type": "perspective",
+                "perspective": {
+                    "yfov": float(camera.yfov_rad),
+                    "aspectRatio": float(camera.aspect_ratio),
+                    "znear": float(camera.znear_m),
+                },
+            }
+        )
+        camera_node: dict[str, Any] = {"name": camera.name, "camera": 0}
+        if camera.extras:
+            camera_node["extras"] = json_safe(camera.extras)
+        nodes.append(camera_node)
+    root: dict[str, Any] = {"name": root_name}
     if nodes:
         root["children"] = list(range(1, len(nodes) + 1))
+    asset: dict[str, Any] = {"version": "2.0", "generator": generator}
+    if asset_extras:
+        asset["extras"] = json_safe(asset_extras)
     gltf: dict[str, Any] = {
-        "asset": {"version": "2.0", "generator": generator},
+        "asset": asset,
         "scene": 0,
         "scenes": [{"nodes": [0]}],
         "nodes": [root] + nodes,
     }
+    if cameras:
+        gltf["cameras"] = cameras
     if quads:
         gltf.update(
             {

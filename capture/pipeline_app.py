@@ -30,17 +30,19 @@ from typing import Any
 
 import numpy as np
 
-from mca.capture import output_folders, outputs
+from mca.capture import api, output_folders, outputs
+from mca.capture.api import LoadedInput, read_input  # the input's own facts live in capture/api.py
 from mca.capture.raw import (
     IMAGE_EXTENSIONS,
     RAW_EXTENSIONS,
     NotARegularFileError,
-    RawFrame,
     RawReadError,
     read_policy,
     read_raw,
 )
 from mca.processing.camera import CameraProfile
+from mca.processing.colour import CameraColour
+from mca.processing.pinhole import SCENE_FRAME, PinholeCamera
 from mca.processing.result import DepthResult
 
 SUPPORTED_SUFFIXES = frozenset(RAW_EXTENSIONS) | frozenset(IMAGE_EXTENSIONS)  # what `read_raw` reads
@@ -65,77 +67,7 @@ class FileOutcome:
     regions: int | None = None  # number of regions found, when done
 
 
-@dataclass
-class LoadedInput:
-    """An input file ready for the pipeline."""
-
-    frame: RawFrame  # what the recorder logs
-    planes: np.ndarray  # (H, W, 3) float32 linear RGB at processing resolution
-    pixel_scale: float  # input-image pixels per processing pixel
-    input_size_px: tuple[int, int]  # (width, height) of the input image
-    pixel_pitch_mm: float | None  # pitch of one input-image pixel, when known
-    metadata: dict[str, Any]
-
-
 # --- reading --------------------------------------------------------------------------------------------------------
-
-
-DOWNSCALED_RAW_RATIO = 1.5  # a raw this much narrower than its body's active area is a downscaled one
-
-
-def input_pixel_pitch_mm(frame: RawFrame, input_width_px: int) -> float | None:
-    """Pitch of one input-image pixel on the sensor, when the file says which body took it.
-
-    A raw carries its body's photosite pitch; but a raw far narrower than that body's sensor
-    (Canon mRAW/sRAW, the simulator's `--size small`) spans the same sensor with fewer, larger
-    pixels, so its pitch is the sensor width over its width, as for RGB images.
-    """
-    scale = 2.0 if frame.half_resolution else 1.0
-    pitch = frame.pixel_pitch_mm / scale if frame.pixel_pitch_mm else None
-    if frame.half_resolution and pitch is not None:
-        from mca.capture.sensors import sensor_for
-
-        spec = sensor_for(frame.metadata.model, frame.metadata.make)
-        if spec is not None and spec.width_px >= DOWNSCALED_RAW_RATIO * input_width_px:
-            pitch = spec.width_mm / input_width_px
-    return pitch
-
-
-def read_input(path: Path) -> LoadedInput:
-    """Read any photograph `read_raw` reads; Bayer raws give half-resolution planes (pixel_scale 2).
-
-    Raises `capture.raw.RawReadError` naming the file when it cannot be read.
-    """
-    frame = read_raw(path)
-    planes = np.asarray(frame.planes, dtype=np.float32)
-    height, width = planes.shape[:2]
-    scale = 2.0 if frame.half_resolution else 1.0
-    size = (int(round(width * scale)), int(round(height * scale)))
-    return LoadedInput(
-        frame=frame,
-        planes=planes,
-        pixel_scale=scale,
-        input_size_px=size,
-        pixel_pitch_mm=input_pixel_pitch_mm(frame, size[0]),
-        metadata=dataclasses.asdict(frame.metadata),
-    )
-
-
-def bayer_channel_offsets_px(cfa_pattern: str | None) -> tuple[tuple[float, float], ...] | None:
-    """(dx, dy) of the R, G, B samples from the centre of their 2x2 block, in half-resolution pixels.
-
-    `cfa_pattern` names the colours of the top-left 2x2 row by row ("RGGB" gives red at (-0.25, -0.25),
-    the mean of the greens at the centre, blue at (+0.25, +0.25)); None when it is not a Bayer pattern.
-    """
-    if not cfa_pattern or sorted(cfa_pattern.upper()) != ["B", "G", "G", "R"]:
-        return None
-    sites: dict[str, list[tuple[int, int]]] = {"R": [], "G": [], "B": []}
-    for index, letter in enumerate(cfa_pattern.upper()):
-        sites[letter].append((index % 2, index // 2))
-    return tuple(
-        (float(np.mean([x for x, _ in sites[c]]) - 0.5) / 2.0, float(np.mean([y for _, y in sites[c]]) - 0.5) / 2.0)
-        for c in "RGB"
-    )
 
 
 def upsample_nearest(array: np.ndarray, pixel_scale: float, size_px: tuple[int, int]) -> np.ndarray:
@@ -161,46 +93,24 @@ def upsample_nearest(array: np.ndarray, pixel_scale: float, size_px: tuple[int, 
     return array[rows[:, None], cols[None, :]]
 
 
-@dataclass(frozen=True)
-class Pinhole:
-    """Back-projection of input-image pixels: x = (u - cx) * pitch * Z / d_ls (camera frame, x right, y down, mm)."""
-
-    pixel_pitch_mm: float  # pitch of one input-image pixel
-    sensor_distance_mm: float  # the paper's d_ls
-    width_px: int
-    height_px: int
-
-    @property
-    def centre_px(self) -> tuple[float, float]:
-        """Principal point: the image centre, in pixel-centre coordinates."""
-        return ((self.width_px - 1) / 2.0, (self.height_px - 1) / 2.0)
-
-    def back_project(self, u_px: np.ndarray, v_px: np.ndarray, z_mm: np.ndarray) -> np.ndarray:
-        """(N, 3) camera-frame points in mm for pixel coordinates and distances along the optical axis."""
-        cx, cy = self.centre_px
-        scale = self.pixel_pitch_mm / self.sensor_distance_mm
-        return np.stack([(u_px - cx) * scale * z_mm, (v_px - cy) * scale * z_mm, z_mm], axis=-1)
+# The camera of an input image, from the pixel pitch and d_ls: the one model of every 3D output (processing/pinhole.py).
+Pinhole = PinholeCamera.from_optics
 
 
 def scene_points(
     depth_mm: np.ndarray,
     colours_rgb8: np.ndarray,
     pixel_scale: float,
-    camera: Pinhole,
+    camera: PinholeCamera,
     max_points: int = MAX_PLY_POINTS,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Coloured camera-frame points of every known-depth pixel, on a regular stride so at most `max_points`."""
-    valid = np.isfinite(depth_mm) & (depth_mm > 0)
-    stride = max(1, math.ceil(math.sqrt(int(valid.sum()) / max_points)))
-    while int(valid[::stride, ::stride].sum()) > max_points:
-        stride += 1
-    sub = valid[::stride, ::stride]
-    rows, cols = np.nonzero(sub)
-    rows, cols = rows * stride, cols * stride
-    u = (cols + 0.5) * pixel_scale - 0.5  # pixel centres in input-image coordinates
-    v = (rows + 0.5) * pixel_scale - 0.5
-    points = camera.back_project(u, v, depth_mm[rows, cols].astype(np.float64))
-    return points.astype(np.float32), colours_rgb8[rows, cols]
+    """Coloured scene-frame points (metres, glTF axes) of every known-depth pixel, on a regular stride.
+
+    The stride is the smallest that leaves at most `max_points` (`PinholeCamera.depth_map_points`, which
+    the recording's point cloud uses too, so the two agree point for point where their strides agree).
+    """
+    points, rows, cols = camera.depth_map_points(depth_mm, pixel_scale, max_points)
+    return points, colours_rgb8[rows, cols]
 
 
 def _alpha8(alpha: np.ndarray) -> np.ndarray:
@@ -218,14 +128,39 @@ def _box_of(mask: np.ndarray) -> tuple[slice, slice] | None:
     return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
 
 
-def _layer_rgba8(layer: Any, srgb8_of: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
-    """A layer (premultiplied linear RGB, alpha in [0, 1]) as 8-bit sRGB with 8-bit alpha.
+ALPHA_MARGIN_PX = 3  # how far the fringe reaches beyond the region (where the Gaussian rounds to 0 alpha)
+ALPHA_EDGE_PX = 0.7  # sigma (processing px) of the anti-aliased fringe around a layer's region
 
-    Only the bounding box of the layer's non-zero pixels is converted; outside it every byte is 0,
-    as the conversion gives for 0. A layer the pipeline built lazily from a (display image, labels)
-    source (`processing.result.MultiPlaneImage.rgba`: display x mask, alpha = mask) takes its colours
-    from the display image converted once for all layers (`srgb8_of`, cached by the caller), instead
-    of a full-size float RGBA array per layer; sRGB of display x 1 is sRGB of display, of x 0 is 0.
+
+def layer_alpha(mask: np.ndarray, sigma_px: float = ALPHA_EDGE_PX) -> np.ndarray:
+    """Anti-aliased coverage in [0, 1] of a region's mask: 1 on the region, a ramp down to 0 just outside it.
+
+    `max(mask, Gaussian(mask))`: the region's own pixels stay opaque, and the pixels next to it get a
+    partial coverage that falls off over about two pixels, so a silhouette is not a staircase of 0 and
+    255. Seen from the camera nothing changes where layers meet: the fringe of a nearer layer lies over
+    the farther layer's own (opaque) pixels and carries the same colour (every layer takes its colours
+    from the one display image), and a farther layer's fringe lies behind the nearer layer.
+    """
+    import cv2
+
+    mask_f = np.asarray(mask, dtype=np.float32)
+    if not mask_f.any():
+        return mask_f
+    soft = cv2.GaussianBlur(mask_f, (0, 0), sigma_px, borderType=cv2.BORDER_REPLICATE)
+    return np.maximum(mask_f, soft)
+
+
+def _layer_rgba8(
+    layer: Any, srgb8_of: Callable[[np.ndarray], np.ndarray], colour: CameraColour | None = None
+) -> np.ndarray:
+    """A layer (premultiplied linear camera RGB, alpha in [0, 1]) as 8-bit sRGB with anti-aliased 8-bit alpha.
+
+    Only the bounding box (plus a pixel) of the layer's non-zero pixels is converted; outside it every byte
+    is 0. A layer the pipeline built lazily from a (display image, labels) source
+    (`processing.result.MultiPlaneImage.rgba`: display x mask, alpha = mask) takes its colours from the
+    display image converted once for all layers (`srgb8_of`, cached by the caller, white balance and colour
+    matrix included), and its alpha from `layer_alpha` of its mask. RGB is stored unpremultiplied (PNG's
+    convention). `colour` converts an eager layer's camera RGB (identity when None).
     """
     source = layer.lazy_source
     if source is not None:
@@ -234,18 +169,30 @@ def _layer_rgba8(layer: Any, srgb8_of: Callable[[np.ndarray], np.ndarray]) -> np
         out = np.zeros(mask.shape + (4,), np.uint8)
         box = _box_of(mask)
         if box is not None:
-            inside, sub = out[box], mask[box]
-            np.copyto(inside[..., :3], srgb8_of(display)[box], where=sub[..., None])
-            inside[..., 3] = sub.view(np.uint8) * np.uint8(255)
+            box = _grown(box, mask.shape, ALPHA_MARGIN_PX)
+            inside = out[box]
+            alpha8 = _alpha8(layer_alpha(mask[box]))
+            np.copyto(inside[..., :3], srgb8_of(display)[box], where=(alpha8 > 0)[..., None])
+            inside[..., 3] = alpha8
         return out
     rgba = np.asarray(layer.rgba)
     out = np.zeros(rgba.shape[:2] + (4,), np.uint8)
     box = _box_of((rgba != 0).any(axis=2))
     if box is not None:
         crop = rgba[box]
-        out[box][..., :3] = outputs.linear_to_srgb8(crop[..., :3])
+        alpha = np.clip(np.nan_to_num(crop[..., 3:4]), 0.0, 1.0)
+        straight = np.where(alpha > 0, crop[..., :3] / np.maximum(alpha, 1e-6), 0.0)
+        out[box][..., :3] = (colour or CameraColour()).to_srgb8(straight)
         out[box][..., 3] = _alpha8(crop[..., 3])
     return out
+
+
+def _grown(box: tuple[slice, slice], shape: tuple[int, ...], margin: int) -> tuple[slice, slice]:
+    rows, cols = box
+    return (
+        slice(max(0, rows.start - margin), min(shape[0], rows.stop + margin)),
+        slice(max(0, cols.start - margin), min(shape[1], cols.stop + margin)),
+    )
 
 
 def region_boxes(labels: np.ndarray) -> list[tuple[slice, slice] | None]:
@@ -259,13 +206,18 @@ def region_quads(
     result: DepthResult,
     textures_png: dict[int, bytes],
     all_in_focus8: np.ndarray,
-    camera: Pinhole,
+    camera: PinholeCamera,
     boxes: list[tuple[slice, slice] | None] | None = None,
+    distance_mm_of: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> list[outputs.TexturedQuad]:
-    """One quad per region with a distance, front to back: its bounding box back-projected at its distance.
+    """One quad per region with a distance, front to back: its bounding box back-projected onto its surface.
 
-    `textures_png[id]` is the region's layer cropped to its box, as PNG; a region without one is
-    textured with the all-in-focus image under its mask.
+    A fronto-parallel region's quad stands at the region's distance. A slanted region's corners take
+    the distances of its fitted disparity plane (`Region.slant`, a x + b y + c in input pixels) through
+    `distance_mm_of` (the optics' disparity-to-distance): the quad lies in the 3D plane the depth map
+    shows (disparity affine in the image is 1/distance affine: a plane). Corners are in the scene
+    frame (metres, glTF axes). `textures_png[id]` is the region's layer cropped to its box, as PNG; a
+    region without one is textured with the all-in-focus image under its mask.
     """
     labels = np.asarray(result.labels)
     boxes = region_boxes(labels) if boxes is None else boxes
@@ -280,18 +232,34 @@ def region_quads(
         if texture is None:
             crop = (labels[box] == region.id).astype(np.uint8) * 255
             texture = outputs.encode_png(np.dstack([all_in_focus8[box], crop]))
-        # pixel edges in input-image coordinates; the centre of pixel u sits at edge u + 0.5
+        # pixel edges in input-image coordinates (pixel centres at integers: edges at +-0.5)
         left, right = c0 * result.pixel_scale - 0.5, c1 * result.pixel_scale - 0.5
         top, bottom = r0 * result.pixel_scale - 0.5, r1 * result.pixel_scale - 0.5
         u = np.array([left, right, right, left])
         v = np.array([top, top, bottom, bottom])
-        corners = camera.back_project(u, v, np.full(4, float(z)))
+        distances = np.full(4, float(z))
+        slanted = False
+        if region.slant is not None and distance_mm_of is not None:
+            slanted = True
+            a, b, c = region.slant
+            corner_distances = np.asarray(distance_mm_of(a * u + b * v + c), dtype=np.float64)
+            if np.all(np.isfinite(corner_distances)) and np.all(corner_distances > 0):
+                distances = corner_distances
+            else:
+                slanted = False
+        corners = camera.back_project_scene_m(u, v, distances)
         quads.append(
             outputs.TexturedQuad(
                 name=f"region {region.id}",
-                corners_mm=corners,
+                corners_m=corners,
                 texture_png=texture,
-                extras={"region_id": region.id, "order": region.order, "distance_mm": float(z)},
+                extras={
+                    "region_id": region.id,
+                    "order": region.order,
+                    "distance_mm": float(z),
+                    "corner_distances_mm": [round(float(d), 4) for d in distances],
+                    "slanted": bool(slanted),
+                },
             )
         )
     return quads
@@ -327,6 +295,22 @@ def _clean_folder(out_dir: Path) -> None:
 
 
 WRITE_THREADS = 2  # PNG/TIFF deflate, sRGB tables and file writes release the GIL: files encode side by side
+RESULT_SCHEMA_VERSION = 2  # result.json's layout (docs/outputs.md); raised whenever a field changes meaning
+
+
+def software() -> str:
+    """The software that wrote a file, for its metadata: "mca-appliance <version>"."""
+    from mca import __version__
+
+    return f"mca-appliance {__version__}"
+
+
+def _file_text(what: str, input_path: Path | None) -> dict[str, str]:
+    """PNG text chunks: what the image is, the software and the photograph it came from."""
+    text = {"Title": what.split(":")[0], "Description": what, "Software": software()}
+    if input_path is not None:
+        text["Source"] = str(input_path)
+    return text
 
 
 def write_outputs(
@@ -334,24 +318,32 @@ def write_outputs(
     result: DepthResult,
     loaded: LoadedInput,
     labels_input: np.ndarray,
-    camera: Pinhole | None,
+    camera: PinholeCamera | None,
     *,
+    optics: Any = None,
+    profile: CameraProfile | None = None,
     threads: int = WRITE_THREADS,
 ) -> list[str]:
     """Write every output except result.json; returns their names relative to `out_dir`.
 
-    `labels_input` is the region map at input resolution; `camera` is None in disparity-only mode.
-    Independent files are encoded and written by `threads` worker threads; every file's bytes are
-    the same whatever the number of threads or the order they finish in.
+    `labels_input` is the region map at input resolution; `camera` is None in disparity-only mode;
+    `optics` (an `MCAOptics`) places slanted regions' quads on their planes; `profile` goes into
+    depth.tiff's description. Displayed images (all-in-focus, layers, GLB textures, point colours)
+    get the input's camera colour (`loaded.colour`: white balance and colour matrix). Independent
+    files are encoded and written by `threads` worker threads; every file's bytes are the same
+    whatever the number of threads or the order they finish in.
     """
     from concurrent.futures import Future, ThreadPoolExecutor
 
     size = loaded.input_size_px
     scale = result.pixel_scale
+    colour = loaded.colour
+    source = getattr(loaded.frame, "path", None)
     with_scene = camera is not None and result.depth_mm is not None
     layers = ordered_layers(result)
     boxes = region_boxes(result.labels) if with_scene else []
     textured: set[int] = set()  # the first layer of a region textures its quad in the GLB
+    distance_mm_of = getattr(optics, "distance_mm", None)
 
     with ThreadPoolExecutor(max_workers=max(1, threads), thread_name_prefix="mca-write") as pool:
         # Tasks run first in, first out, and a task only waits for ones submitted before it: no deadlock.
@@ -362,12 +354,26 @@ def write_outputs(
 
         def convert(linear: np.ndarray) -> None:
             if id(linear) not in conversions:
-                conversions[id(linear)] = pool.submit(outputs.linear_to_srgb8, linear)
+                conversions[id(linear)] = pool.submit(colour.to_srgb8, linear)
 
         convert(result.all_in_focus)
         for layer in layers:
             if layer.lazy_source is not None:
                 convert(layer.lazy_source[0])
+
+        def describe_map(meaning: str, unit: str) -> dict[str, Any]:
+            return {
+                "meaning": meaning,
+                "unit": unit,
+                "nodata": "NaN",
+                "software": software(),
+                "input": None if source is None else str(source),
+                "profile": None if profile is None else profile.name,
+                "profile_source": None if profile is None else profile.source,
+                "optics": None if optics is None else _optics_document(optics),
+                "camera": None if camera is None else camera.describe(),
+                "pixel_convention": "row 0 is the top of the image; input-image pixels",
+            }
 
         def write_depth() -> list[Path]:
             written = []
@@ -379,14 +385,39 @@ def write_outputs(
                     outputs.write_tiff_float32(
                         out_dir / "disparity.tiff",
                         upsample_nearest(np.asarray(result.disparity_px, np.float32), scale, size),
+                        description=describe_map(
+                            "disparity between the images of the widest filter pair, region model; "
+                            "+ = farther than the focus plane",
+                            "px",
+                        ),
+                        unit="px",
+                        software=software(),
+                        nodata=math.nan,
                     )
                 )
-            written.append(outputs.write_tiff_float32(out_dir / "depth.tiff", upsample_nearest(depth, scale, size)))
+            meaning = "distance from the lens along the optical axis"
+            if not with_scene:
+                meaning += " (all NaN: no lens data, see disparity.tiff)"
+            written.append(
+                outputs.write_tiff_float32(
+                    out_dir / "depth.tiff",
+                    upsample_nearest(depth, scale, size),
+                    description=describe_map(meaning, "mm"),
+                    unit="mm",
+                    software=software(),
+                    nodata=math.nan,
+                )
+            )
             return written
 
         def write_layer(index: int, layer: Any, box: tuple[slice, slice] | None) -> tuple[Path, bytes | None]:
-            rgba8 = _layer_rgba8(layer, srgb8_of)
-            png = outputs.encode_png(rgba8)
+            rgba8 = _layer_rgba8(layer, srgb8_of, colour)
+            text = _file_text(
+                f"layer {index:02d}: multi-plane image of region {layer.region_id}, sRGB, alpha = coverage "
+                "(anti-aliased), front to back",
+                source,
+            )
+            png = outputs.encode_png(rgba8, srgb=True, text=text)
             path = outputs.write_bytes_atomic(out_dir / "layers" / f"{index:02d}.png", png)
             if box is None:
                 return path, None
@@ -394,20 +425,35 @@ def write_outputs(
             return path, png if crop.shape == rgba8.shape else outputs.encode_png(crop)  # a full-frame box: same PNG
 
         def write_scene_ply() -> Path:
+            assert camera is not None
             depth = np.asarray(result.depth_mm, dtype=np.float32)
             points, colours = scene_points(depth, srgb8_of(result.all_in_focus), scale, camera)
             return outputs.write_ply(
                 out_dir / "scene.ply",
                 points,
                 colours,
-                comments=("mca-appliance scene: camera frame, x right, y down, z along the optical axis, millimetres",),
+                comments=(
+                    f"mca-appliance scene: {SCENE_FRAME}",
+                    "units metres; colours sRGB",
+                    f"written by {software()}",
+                ),
             )
 
         # the longest tasks first, so that neither thread is left with a long one at the end
         all_in_focus_task = pool.submit(
-            lambda: outputs.write_png(out_dir / "all_in_focus.png", srgb8_of(result.all_in_focus))
+            lambda: outputs.write_png(
+                out_dir / "all_in_focus.png",
+                srgb8_of(result.all_in_focus),
+                srgb=True,
+                text=_file_text("all-in-focus image: each region's colour channels re-aligned, sRGB", source),
+            )
         )
-        regions_task = pool.submit(outputs.write_png, out_dir / "regions.png", labels_input.astype(np.uint16))
+        regions_task = pool.submit(
+            outputs.write_png,
+            out_dir / "regions.png",
+            labels_input.astype(np.uint16),
+            text=_file_text("region labels: the region id of each input pixel (result.json), 0 = none", source),
+        )
         depth_task = pool.submit(write_depth)
         layer_tasks = []
         for index, layer in enumerate(layers):
@@ -425,11 +471,34 @@ def write_outputs(
             paths.append(path)
             if texture is not None:
                 textures[region_id] = texture
-        if with_scene:
+        if with_scene and camera is not None and ply_task is not None:
             paths.append(ply_task.result())
-            quads = region_quads(result, textures, srgb8_of(result.all_in_focus), camera, boxes)
-            paths.append(outputs.write_glb(out_dir / "scene.glb", quads))
+            quads = region_quads(result, textures, srgb8_of(result.all_in_focus), camera, boxes, distance_mm_of)
+            gltf_camera = outputs.GltfCamera(
+                yfov_rad=camera.yfov_rad,
+                aspect_ratio=camera.width_px / camera.height_px,
+                extras=camera.describe(),
+            )
+            paths.append(
+                outputs.write_glb(
+                    out_dir / "scene.glb",
+                    quads,
+                    camera=gltf_camera,
+                    generator=software(),
+                    asset_extras={"scene_frame": SCENE_FRAME, "input": None if source is None else str(source)},
+                )
+            )
     return [path.relative_to(out_dir).as_posix() for path in paths]
+
+
+def _optics_document(optics: Any) -> dict[str, float]:
+    return {
+        "focal_length_mm": float(optics.focal_length_mm),
+        "sensor_distance_mm": float(optics.sensor_distance_mm),
+        "filter_centre_distance_mm": float(optics.filter_centre_distance_mm),
+        "focus_distance_mm": float(optics.focus_distance_mm),
+        "pixel_pitch_mm": float(optics.pixel_pitch_mm),
+    }
 
 
 def ordered_layers(result: DepthResult) -> list:
@@ -474,7 +543,10 @@ def result_document(
             }
         )
     mode = "distance" if optics is not None and result.depth_mm is not None else "disparity-only"
+    camera = api.camera_for(optics, loaded) if mode == "distance" else None
     return {
+        "schema_version": RESULT_SCHEMA_VERSION,
+        "software": software(),
         "input": str(input_path),
         "profile": profile.name,
         "focus_region": None if result.focus_region is None else int(result.focus_region),
@@ -489,7 +561,7 @@ def result_document(
             "distance_mm": "mm from the lens",
             "inter_image_depth_mm": "mm, image side (eq. 2)",
             "inter_object_depth_mm": "mm from the focus plane, object side (eqs. 13/14)",
-            "scene": "camera frame, x right, y down, z forward, mm",
+            "scene": SCENE_FRAME + " (scene.ply, scene.glb, the recording's world)",
         },
         "input_size_px": list(loaded.input_size_px),
         "processing_size_px": [int(result.labels.shape[1]), int(result.labels.shape[0])],
@@ -503,6 +575,8 @@ def result_document(
             "filter_centre_distance_mm": float(optics.filter_centre_distance_mm),
             "focus_distance_mm": float(optics.focus_distance_mm),
         },
+        "camera": None if camera is None else camera.describe(),
+        "colour": loaded.colour.as_dict(),
         "layers_order": LAYER_ORDER,
         "capture": outputs.json_safe(loaded.metadata),
         "outputs": written + [RESULT_NAME],
@@ -513,15 +587,8 @@ def result_document(
 
 
 def _optics_for(profile: CameraProfile, loaded: LoadedInput):
-    """MCAOptics in input-image pixels, or None when the profile has no lens data (disparity-only results)."""
-    if profile.lens is None:
-        return None
-    pitch = loaded.pixel_pitch_mm or profile.pixel_pitch_mm
-    if pitch is None:
-        return None
-    from mca.processing.optics import MCAOptics
-
-    return MCAOptics.from_profile(profile, pixel_pitch_mm=pitch)
+    """MCAOptics in input-image pixels, or None when the profile has no lens data (see `api.optics_for`)."""
+    return api.optics_for(profile, loaded)
 
 
 def _default_pipeline() -> PipelineFunction:
@@ -777,30 +844,21 @@ def _process(
             recorder.log_input(loaded.frame)
         timer = _StageTimer(recorder, on_stage)
         t0 = time.perf_counter()
-        extra: dict[str, Any] = {}
-        if loaded.frame.half_resolution:
-            offsets = bayer_channel_offsets_px(loaded.metadata.get("cfa_pattern"))
-            if offsets is not None:  # Bayer sample positions are not disparity
-                extra["channel_offsets_px"] = offsets
-        result = run(loaded.planes, profile.aperture, optics, pixel_scale=loaded.pixel_scale, recorder=timer, **extra)
+        result = api.run_depth(loaded, profile, optics=optics, pipeline=run, recorder=timer)  # the Python API's path
         timings.update(timer.timings_s)
         timings.update({k: float(v) for k, v in (result.timings_s or {}).items()})
         timings["pipeline"] = time.perf_counter() - t0
         if recorder is not None:
             recorder.log_result(result, profile, optics)
 
-    if not math.isclose(result.pixel_scale, loaded.pixel_scale):
-        result = dataclasses.replace(result, pixel_scale=loaded.pixel_scale)
-    camera = None
-    if optics is not None:
-        camera = Pinhole(optics.pixel_pitch_mm, optics.sensor_distance_mm, *loaded.input_size_px)
+    camera = api.camera_for(optics, loaded)
 
     t0 = time.perf_counter()
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / RESULT_NAME).unlink(missing_ok=True)  # unfinished from here until the new one lands
     _clean_folder(out_dir)
     labels_input = upsample_nearest(np.asarray(result.labels), result.pixel_scale, loaded.input_size_px)
-    written = write_outputs(out_dir, result, loaded, labels_input, camera)
+    written = write_outputs(out_dir, result, loaded, labels_input, camera, optics=optics, profile=profile)
     if record_path is not None and Path(record_path).parent == out_dir:
         written.append(Path(record_path).name)
     timings["write"] = time.perf_counter() - t0

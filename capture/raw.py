@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from mca.capture.sensors import SensorSpec, known_models, photosite_pitch_mm, sensor_for
+from mca.processing.colour import CameraColour, camera_colour, srgb_decode
 
 RAW_EXTENSIONS = {
     ".cr2": "cr2",
@@ -176,6 +177,8 @@ class RawMetadata:
     black_level: tuple[float, ...] | None = None  # per CFA colour as LibRaw lists them (R, G, B, G2)
     white_level: float | None = None
     cfa_pattern: str | None = None  # e.g. "RGGB": colours of the top-left 2x2 of the planes' source
+    as_shot_wb: tuple[float, ...] | None = None  # as-shot white-balance multipliers R, G, B (LibRaw's cam_mul)
+    xyz_to_camera: tuple[tuple[float, ...], ...] | None = None  # 3x3 colour matrix, XYZ to camera RGB (cam_xyz)
 
 
 @dataclass
@@ -189,6 +192,41 @@ class RawFrame:
     path: Path
     half_resolution: bool = False  # True when the planes are the Bayer quads of a raw
     _rgb: np.ndarray | None = field(default=None, repr=False)
+    colour: CameraColour = field(default_factory=CameraColour)  # camera RGB -> sRGB for display (not for depth)
+
+    @classmethod
+    def from_planes(
+        cls,
+        planes: np.ndarray,
+        *,
+        pixel_pitch_mm: float | None = None,
+        half_resolution: bool = False,
+        cfa_pattern: str | None = None,
+        colour: CameraColour | None = None,
+        make: str | None = None,
+        model: str | None = None,
+        name: str = "<array>",
+    ) -> RawFrame:
+        """A frame from arrays already in memory (linear R, G, B planes in [0, 1]).
+
+        `half_resolution=True` says the planes are a Bayer raw's 2x2 quads, and then `cfa_pattern`
+        (e.g. "RGGB") is required: the R and B samples sit a quarter plane pixel off the G centre.
+        `pixel_pitch_mm` is the size of one plane pixel on the sensor (for a Bayer raw, twice the
+        photosite pitch), as `read_raw` reports it.
+        """
+        array = np.asarray(planes, dtype=np.float32)
+        if array.ndim != 3 or array.shape[2] != 3:
+            raise ValueError(f"planes must be (H, W, 3) linear R, G, B, got shape {array.shape}")
+        meta = RawMetadata(make=make, model=model, cfa_pattern=cfa_pattern, photosite_pitch_mm=None)
+        return cls(
+            array,
+            pixel_pitch_mm,
+            "array",
+            meta,
+            Path(name),
+            half_resolution=half_resolution,
+            colour=colour or CameraColour(),
+        )
 
     def demosaiced_rgb(self) -> np.ndarray:
         """Full-resolution linear RGB (H, W, 3) float32 in [0, 1]: LibRaw's AHD demosaic for raws.
@@ -308,12 +346,7 @@ def require_known_body(frame: RawFrame, known: Iterable[str] | None = None) -> S
     )
 
 
-def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 sRGB decoding of values in [0, 1]: c/12.92 up to 0.04045, else ((c+0.055)/1.055)^2.4."""
-    c = np.asarray(encoded, dtype=np.float32)
-    return np.where(
-        c <= 0.04045, c / np.float32(12.92), np.power((c + np.float32(0.055)) / np.float32(1.055), np.float32(2.4))
-    ).astype(np.float32)
+srgb_to_linear = srgb_decode  # IEC 61966-2-1 decoding (processing/colour.py)
 
 
 # --------------------------------------------------------------------------
@@ -746,21 +779,23 @@ def _read_tiff_structure(p: Path, kind: str) -> _Tiff:
 def _libraw_failure(p: Path, kind: str, e: Exception) -> RawReadError:
     name = type(e).__name__
     detail = e.args[0] if e.args else ""
-    e = detail.decode("utf-8", "replace") if isinstance(detail, bytes) else str(detail or name)
+    message = detail.decode("utf-8", "replace") if isinstance(detail, bytes) else str(detail or name)
     if "Unsupported" in name:
         return RawReadError(
             p,
-            f"is not a raw format LibRaw can decode ({kind.upper()}; LibRaw: {e})",
+            f"is not a raw format LibRaw can decode ({kind.upper()}; LibRaw: {message})",
             "Convert it to DNG or 16-bit linear TIFF, or check that it really is a camera raw",
         )
     if "IO" in name or "Data" in name:
         return RawReadError(
             p,
-            f"raw data could not be decoded ({name}: {e}); the file is probably truncated or damaged",
+            f"raw data could not be decoded ({name}: {message}); the file is probably truncated or damaged",
             "Copy the photograph from the camera again",
         )
     return RawReadError(
-        p, f"LibRaw could not read it ({name}: {e})", "Copy the photograph from the camera again, or convert it to DNG"
+        p,
+        f"LibRaw could not read it ({name}: {message})",
+        "Copy the photograph from the camera again, or convert it to DNG",
     )
 
 
@@ -810,10 +845,13 @@ def _frame_from_libraw(p: Path, kind: str, raw: Any, meta: dict[str, Any]) -> Ra
         and sorted(desc[int(c)] for c in pattern.reshape(-1)) == ["B", "G", "G", "R"]
     )
     fields = dict(meta, photosite_pitch_mm=pitch, black_level=tuple(float(b) for b in black), white_level=white)
+    wb, xyz_to_camera = _libraw_colour(raw)
+    fields.update(as_shot_wb=wb, xyz_to_camera=xyz_to_camera)
+    colour = camera_colour(wb, None if xyz_to_camera is None else np.array(xyz_to_camera), who=model or kind.upper())
     if not bayer:
         rgb = _postprocess(raw, black, white)
         fields["cfa_pattern"] = None
-        return RawFrame(rgb, pitch, kind, RawMetadata(**fields), p, half_resolution=False, _rgb=rgb)
+        return RawFrame(rgb, pitch, kind, RawMetadata(**fields), p, half_resolution=False, _rgb=rgb, colour=colour)
     visible = raw.raw_image_visible
     h2, w2 = visible.shape[0] // 2, visible.shape[1] // 2
     planes = np.zeros((h2, w2, 3), dtype=np.float32)
@@ -829,7 +867,32 @@ def _frame_from_libraw(p: Path, kind: str, raw: Any, meta: dict[str, Any]) -> Ra
                 planes[..., "RGB".index(letter)] = scaled
     np.clip(planes, 0.0, 1.0, out=planes)
     fields["cfa_pattern"] = "".join(desc[int(c)] for c in pattern.reshape(-1))
-    return RawFrame(planes, 2 * pitch if pitch else None, kind, RawMetadata(**fields), p, half_resolution=True)
+    return RawFrame(
+        planes, 2 * pitch if pitch else None, kind, RawMetadata(**fields), p, half_resolution=True, colour=colour
+    )
+
+
+def _libraw_colour(raw: Any) -> tuple[tuple[float, ...] | None, tuple[tuple[float, ...], ...] | None]:
+    """As-shot white-balance multipliers (R, G, B) and the XYZ-to-camera matrix, as LibRaw reports them.
+
+    `camera_whitebalance` is LibRaw's cam_mul (R, G, B, G2; zero when the file has none);
+    `rgb_xyz_matrix` its cam_xyz (from the file for DNG, else LibRaw's table of cameras; zero when unknown).
+    """
+    wb = None
+    try:
+        mul = [float(v) for v in raw.camera_whitebalance][:3]
+        if len(mul) == 3 and all(math.isfinite(v) and v > 0 for v in mul):
+            wb = (mul[0], mul[1], mul[2])
+    except (AttributeError, TypeError, ValueError):
+        wb = None
+    matrix = None
+    try:
+        cam_xyz = np.asarray(raw.rgb_xyz_matrix, dtype=np.float64)[:3, :3]
+        if cam_xyz.shape == (3, 3) and np.isfinite(cam_xyz).all() and np.abs(cam_xyz).sum() > 0:
+            matrix = tuple(tuple(float(v) for v in row) for row in cam_xyz)
+    except (AttributeError, TypeError, ValueError):
+        matrix = None
+    return wb, matrix
 
 
 def _postprocess(raw: Any, black: np.ndarray, white: float) -> np.ndarray:
@@ -891,7 +954,13 @@ def _to_rgb(arr: np.ndarray, p: Path | None = None) -> np.ndarray:
     )
 
 
-def _rgb_frame(p: Path, kind: str, rgb: np.ndarray, meta: dict[str, Any]) -> RawFrame:
+SRGB_FILE_COLOUR = CameraColour(source="the file is sRGB-encoded: its decoded values are linear sRGB already")
+LINEAR_TIFF_COLOUR = CameraColour(
+    source="assumed: a 16-bit or float TIFF carries no camera colour data; taken as linear sRGB, white-balanced"
+)
+
+
+def _rgb_frame(p: Path, kind: str, rgb: np.ndarray, meta: dict[str, Any], colour: CameraColour) -> RawFrame:
     rgb = np.ascontiguousarray(rgb, dtype=np.float32)
     spec = sensor_for(meta.get("model"), meta.get("make"))
     pitch = None
@@ -899,7 +968,7 @@ def _rgb_frame(p: Path, kind: str, rgb: np.ndarray, meta: dict[str, Any]) -> Raw
         pitch = spec.width_mm / max(rgb.shape[0], rgb.shape[1])  # the image's long side spans the sensor width
     elif meta.get("photosite_pitch_mm"):
         pitch = meta["photosite_pitch_mm"]
-    return RawFrame(rgb, pitch, kind, RawMetadata(**meta), p, half_resolution=False, _rgb=rgb)
+    return RawFrame(rgb, pitch, kind, RawMetadata(**meta), p, half_resolution=False, _rgb=rgb, colour=colour)
 
 
 def _read_8bit_style(p: Path, kind: str) -> RawFrame:
@@ -937,7 +1006,7 @@ def _read_8bit_style(p: Path, kind: str) -> RawFrame:
         tiff = _tiff_from_jpeg(data) if kind == "jpeg" else _tiff_from_png(data) if kind == "png" else None
     except (ValueError, struct.error, IndexError):
         tiff = None
-    return _rgb_frame(p, kind, linear, _metadata(tiff))
+    return _rgb_frame(p, kind, linear, _metadata(tiff), SRGB_FILE_COLOUR)
 
 
 def _read_tiff(p: Path) -> RawFrame:
@@ -949,7 +1018,7 @@ def _read_tiff(p: Path) -> RawFrame:
             page = tf.pages[0]
             _check_pixels(p, int(page.imagewidth), int(page.imagelength))
             arr = page.asarray()
-            if arr.ndim == 3 and page.planarconfig == tifffile.PLANARCONFIG.SEPARATE:
+            if arr.ndim == 3 and getattr(page, "planarconfig", None) == tifffile.PLANARCONFIG.SEPARATE:
                 arr = np.moveaxis(arr, 0, -1)
     except RawReadError:
         raise
@@ -959,14 +1028,16 @@ def _read_tiff(p: Path) -> RawFrame:
         ) from None
     _refuse_source_samples(p, arr)
     rgb = _to_rgb(arr, p)
+    colour = LINEAR_TIFF_COLOUR
     if rgb.dtype == np.uint16:
         linear = rgb.astype(np.float32) / np.float32(65535)  # 16-bit TIFF: linear
     elif rgb.dtype == np.uint8:
         linear = srgb_to_linear(rgb.astype(np.float32) / np.float32(255))
+        colour = SRGB_FILE_COLOUR
     elif rgb.dtype.kind == "f":
         linear = np.clip(np.nan_to_num(rgb.astype(np.float32)), 0.0, 1.0)
     else:
         raise RawReadError(
             p, f"has {rgb.dtype} samples, which mca does not read", "Export it as 16-bit unsigned linear TIFF"
         )
-    return _rgb_frame(p, "tiff", linear, _metadata(tiff))
+    return _rgb_frame(p, "tiff", linear, _metadata(tiff), colour)

@@ -30,11 +30,15 @@ Entity paths (all per shot, on the `shot` sequence timeline and the `capture_tim
     shot/summary                 TextDocument   shot name, time, timings
     shot/segmentation/sketch     SegmentationImage  the 2.1D sketch's regions on the analysis grid
     shot/stages/<stage>/<item>   Image/Scalars/TextDocument  anything else a stage reported through record()
-    world                        ViewCoordinates RDF (static); units are metres
-    world/camera                 Pinhole        f = d_ls / pitch px, principal point at the centre
+    world                        ViewCoordinates RUB (static): the scene frame of scene.ply and scene.glb,
+                                 metres, x right, y up, the camera at the origin looking down -z (glTF)
+    world/camera                 Pinhole        f = d_ls / pitch px, principal point at the centre, camera_xyz RUB
     world/camera/image           EncodedImage   the input, seen through the pinhole
-    world/points                 Points3D       coloured point cloud (subsampled)
-    world/planes/NN              Mesh3D         the accurate-depth planes, coloured, at their distances
+    world/points                 Points3D       coloured point cloud: scene.ply's points (subsampled)
+    world/planes/NN              Mesh3D         the accurate-depth planes, coloured, on their (slanted) surfaces
+
+The colours of every displayed image are the camera's (`capture.raw.RawFrame.colour`: as-shot white
+balance and colour matrix); the 3D coordinates come from the one camera model, `processing.pinhole`.
     timings/<stage>              Scalars        seconds per stage
 
 Nothing here is imported by `processing`; rerun itself is imported only when a recorder is made.
@@ -51,12 +55,15 @@ import shutil
 import subprocess
 import sys
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from mca.processing.colour import CameraColour
+from mca.processing.pinhole import PinholeCamera
 
 if TYPE_CHECKING:
     from mca.processing.camera import CameraProfile
@@ -221,14 +228,17 @@ def resize(image: np.ndarray, size: tuple[int, int], *, nearest: bool = False) -
     return cv2.resize(src, size, interpolation=cv2.INTER_AREA if shrinking else cv2.INTER_LINEAR)
 
 
-def to_srgb8(linear: np.ndarray) -> np.ndarray:
-    """Linear light in [0, 1] (float) to 8-bit sRGB; uint8 input is taken as already encoded."""
+def to_srgb8(linear: np.ndarray, colour: CameraColour | None = None) -> np.ndarray:
+    """Linear light in [0, 1] (float) to 8-bit sRGB, through `colour` (camera RGB to sRGB) for RGB images;
+    uint8 input is taken as already encoded."""
     if linear.dtype == np.uint8:
         return linear
     if linear.dtype == np.uint16:
         return (linear >> 8).astype(np.uint8)
-    from mca.capture.outputs import linear_to_srgb8
+    from mca.processing.colour import linear_to_srgb8
 
+    if colour is not None and linear.ndim >= 1 and linear.shape[-1] == 3:
+        return colour.to_srgb8(linear)
     return linear_to_srgb8(linear)
 
 
@@ -238,13 +248,6 @@ def normalised(plane: np.ndarray) -> np.ndarray:
     sample = plane[:: max(1, plane.shape[0] // 256), :: max(1, plane.shape[1] // 256)]
     top = float(np.percentile(sample, 99.5)) if sample.size else 1.0
     return np.clip(plane / top, 0.0, 1.0) if top > 0 else np.zeros_like(plane)
-
-
-def grey_world(rgb: np.ndarray) -> np.ndarray:
-    """Scale R and B so that their means match G's: a display-only white balance for raw camera RGB."""
-    means = rgb.reshape(-1, 3).mean(axis=0)
-    gains = np.where(means > 0, means[1] / np.maximum(means, 1e-12), 1.0).astype(np.float32)
-    return rgb * gains
 
 
 def misalignment_overlay(planes: np.ndarray) -> np.ndarray:
@@ -384,48 +387,46 @@ def layer_rgba_crop(layer: Any, window: tuple[slice, slice]) -> np.ndarray:
     return np.asarray(layer.rgba)[rows, cols]
 
 
-def unpremultiplied_rgba8(rgba: np.ndarray) -> np.ndarray:
-    """A float RGBA layer (colour premultiplied by alpha, as `processing.mpi` makes them) as 8-bit sRGB + alpha."""
+def unpremultiplied_rgba8(rgba: np.ndarray, colour: CameraColour | None = None) -> np.ndarray:
+    """A float RGBA layer (camera RGB premultiplied by alpha, as `processing.mpi` makes them) as 8-bit sRGB + alpha."""
     alpha = np.clip(np.nan_to_num(rgba[..., 3:4]), 0.0, 1.0)
-    colour = np.where(alpha > 0, rgba[..., :3] / np.maximum(alpha, 1e-6), 0.0)
-    return np.concatenate([to_srgb8(np.clip(colour, 0.0, 1.0)), np.round(alpha * 255).astype(np.uint8)], axis=2)
+    straight = np.where(alpha > 0, rgba[..., :3] / np.maximum(alpha, 1e-6), 0.0).astype(np.float32)
+    return np.concatenate([to_srgb8(straight, colour), np.round(alpha * 255).astype(np.uint8)], axis=2)
 
 
 def plane_mesh(
     rgba: np.ndarray,
-    distance_m: float,
-    focal_px: float,
-    centre_px: tuple[float, float],
+    distance_mm_at: Callable[[np.ndarray, np.ndarray], np.ndarray],
+    camera: PinholeCamera,
     pixel_scale: float,
     cells_across: int = PLANE_MESH_CELLS,
     *,
     origin_px: tuple[int, int] = (0, 0),
     full_width_px: int | None = None,
+    colour: CameraColour | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A coloured grid mesh over the opaque part of one multi-plane image, at `distance_m` in front of the camera.
+    """A coloured grid mesh over the opaque part of one multi-plane image, on its surface in the scene frame.
 
     `rgba` is at processing resolution (`pixel_scale` input px per pixel), premultiplied, possibly a
     crop whose top-left corner is `origin_px` (x, y) in a frame `full_width_px` wide (the grid step is
-    that width over `cells_across`); `centre_px` and `focal_px` are in input px. The camera looks
-    along +z (x right, y down). Returns (vertices (N, 3) m, triangles (M, 3) uint32, colours (N, 4) uint8).
+    that width over `cells_across`). Each vertex (u, v) (input px, pixel centres at integers) is
+    back-projected by `camera` at `distance_mm_at(u, v)` mm: a constant for a fronto-parallel region,
+    its fitted plane for a slanted one. Returns (vertices (N, 3) metres in the scene frame (glTF axes),
+    triangles (M, 3) uint32, colours (N, 4) uint8).
     """
     h, w = rgba.shape[:2]
     step = max(1, int(math.ceil((full_width_px or w) / cells_across)))
     gw, gh = int(math.ceil(w / step)), int(math.ceil(h / step))
     small = resize(rgba.astype(np.float32, copy=False), (gw, gh))
     cell_on = small[..., 3] > 0.5
-    # vertices at cell corners (gw + 1) x (gh + 1), in input pixels
-    xs = (origin_px[0] + np.minimum(np.arange(gw + 1) * step, w)) * pixel_scale
-    ys = (origin_px[1] + np.minimum(np.arange(gh + 1) * step, h)) * pixel_scale
+    # vertices at cell corners (gw + 1) x (gh + 1): processing-pixel edges, in input pixels (centres at integers)
+    xs = (origin_px[0] + np.minimum(np.arange(gw + 1) * step, w)) * pixel_scale - 0.5
+    ys = (origin_px[1] + np.minimum(np.arange(gh + 1) * step, h)) * pixel_scale - 0.5
     gx, gy = np.meshgrid(xs, ys)
-    z = distance_m
-    vertices = (
-        np.stack([(gx - centre_px[0]) * z / focal_px, (gy - centre_px[1]) * z / focal_px, np.full_like(gx, z)], axis=-1)
-        .reshape(-1, 3)
-        .astype(np.float32)
-    )
+    distances = np.broadcast_to(np.asarray(distance_mm_at(gx, gy), dtype=np.float64), gx.shape)
+    vertices = camera.back_project_scene_m(gx.ravel(), gy.ravel(), distances.ravel()).astype(np.float32)
     # corner colours: average of the neighbouring cells (edge-padded)
-    rgb = unpremultiplied_rgba8(small)[..., :3]
+    rgb = unpremultiplied_rgba8(small, colour)[..., :3]
     padded = np.pad(rgb.astype(np.float32), ((1, 1), (1, 1), (0, 0)), mode="edge")
     corner = (padded[:-1, :-1] + padded[1:, :-1] + padded[:-1, 1:] + padded[1:, 1:]) / 4.0
     colours = np.concatenate(
@@ -438,6 +439,22 @@ def plane_mesh(
         [np.stack([top_left, bottom_left, top_right], axis=1), np.stack([top_right, bottom_left, bottom_right], axis=1)]
     ).astype(np.uint32)
     return vertices, triangles, colours
+
+
+def _surface_distance(
+    region: Any, distance_mm: float, optics: MCAOptics | None
+) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+    """Distance (mm) of a region's surface at input pixels (u, v): its slant plane through the optics, else constant."""
+    slant = getattr(region, "slant", None)
+    if slant is not None and optics is not None:
+        a, b, c = slant
+
+        def on_plane(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+            distances = np.asarray(optics.distance_mm(a * u + b * v + c), dtype=np.float64)
+            return np.where(np.isfinite(distances) & (distances > 0), distances, distance_mm)
+
+        return on_plane
+    return lambda u, v: np.full(np.shape(u), distance_mm, dtype=np.float64)
 
 
 # --- the recorder ---------------------------------------------------------------------------------------------------
@@ -488,7 +505,7 @@ class RerunRecorder:
             url = self._start_server(bind, grpc_port, web_port)
             sinks.append(rr.GrpcSink(url))
         self._stream.set_sinks(*sinks, default_blueprint=default_blueprint())
-        self._stream.log("world", rr.ViewCoordinates.RDF, static=True)
+        self._stream.log("world", rr.ViewCoordinates.RUB, static=True)  # glTF's axes, as scene.ply and scene.glb
         self._shot_name = ""
         self._shot_time: datetime | None = None
         self._profile: CameraProfile | None = None
@@ -496,6 +513,7 @@ class RerunRecorder:
         self._input_size: tuple[int, int] | None = None
         self._input_jpeg: Any = None
         self._pitch_mm: float | None = None
+        self._colour: CameraColour | None = None
         self._timings: dict[str, float] = {}
         self._closed = False
         self._named = False
@@ -604,7 +622,7 @@ class RerunRecorder:
         if not self._named:  # the viewer lists the recording under its first shot's name
             self._stream.send_recording_name(name)
             self._named = True
-        self._display = self._input_size = self._input_jpeg = None
+        self._display = self._input_size = self._input_jpeg = self._colour = None
         self._pitch_mm = profile.pixel_pitch_mm if profile is not None else None
         self._timings = {}
         self._stream.log("shot/profile", rr.TextDocument(profile_markdown(profile), media_type=rr.MediaType.MARKDOWN))
@@ -615,8 +633,8 @@ class RerunRecorder:
         `frame` is a `capture.raw.RawFrame` (or anything with `.planes` (H, W, 3) linear RGB). A Bayer
         raw's planes are at half resolution (`half_resolution`); the input image is shown from them,
         since the display size (about `display_megapixels`) is below even that: demosaicing the full
-        frame would cost seconds and show nothing more. Raw camera RGB gets a grey-world balance for
-        display only; RGB files are shown as they were encoded.
+        frame would cost seconds and show nothing more. Camera RGB is shown through the frame's
+        `colour` (as-shot white balance and colour matrix), as every displayed image of the shot.
         """
         planes = np.asarray(frame.planes)
         scale = 2.0 if getattr(frame, "half_resolution", False) else 1.0
@@ -626,8 +644,8 @@ class RerunRecorder:
         self._input_size = (int(round(planes.shape[1] * scale)), int(round(planes.shape[0] * scale)))
         self._display = display_size(*self._input_size, megapixels=self.display_megapixels)
         small = resize(planes.astype(np.float32, copy=False), self._display)
-        shown = grey_world(small) if scale > 1 else small
-        self._input_jpeg = _jpeg(self._rr, to_srgb8(shown))
+        self._colour = getattr(frame, "colour", None)
+        self._input_jpeg = _jpeg(self._rr, to_srgb8(small, self._colour))
         self._stream.log("shot/input", self._input_jpeg)
         for index, channel in enumerate(("red", "green", "blue")):
             self._stream.log(f"shot/raw/{channel}", _jpeg(self._rr, to_srgb8(normalised(small[..., index]))))
@@ -657,7 +675,7 @@ class RerunRecorder:
             self._input_jpeg = self._encode_colour(result.all_in_focus)
             self._stream.log("shot/input", self._input_jpeg)
         aif_small = resize(np.asarray(result.all_in_focus, dtype=np.float32), display)
-        self._stream.log("shot/all_in_focus", _jpeg(rr, to_srgb8(aif_small)))
+        self._stream.log("shot/all_in_focus", _jpeg(rr, to_srgb8(aif_small, self._colour)))
         self._stream.log("shot/channels/after", _jpeg(rr, misalignment_overlay(aif_small)))
 
         for path, array in (
@@ -739,7 +757,7 @@ class RerunRecorder:
         display: tuple[int, int],
         windows: dict[int, tuple[slice, slice]],
     ) -> None:
-        """The 3D view: the camera (pinhole), the coloured point cloud and the accurate-depth planes, in metres."""
+        """The 3D view in the scene frame of scene.ply and scene.glb: the camera, the point cloud, the planes."""
         rr = self._rr
         pitch = optics.pixel_pitch_mm if optics is not None else self._pitch_mm
         sensor_distance = (
@@ -751,37 +769,28 @@ class RerunRecorder:
         )
         if not pitch or not sensor_distance:
             return
-        focal_px = sensor_distance / pitch  # the pinhole of the MCA camera: d_ls over the pixel pitch
+        camera = PinholeCamera.from_optics(pitch, sensor_distance, *input_size)
         zoom = display[0] / input_size[0]
         self._stream.log(
             "world/camera",
             rr.Pinhole(
-                focal_length=focal_px * zoom,
+                focal_length=camera.focal_px * zoom,
                 width=display[0],
                 height=display[1],
+                # rerun puts pixel centres at +0.5: the image centre (cx + 0.5) * zoom
                 principal_point=(display[0] / 2, display[1] / 2),
                 image_plane_distance=0.1,
+                camera_xyz=rr.ViewCoordinates.RUB,  # the camera looks down -z with y up, as in glTF
             ),
         )
         if self._input_jpeg is not None:
             self._stream.log("world/camera/image", self._input_jpeg)
-        centre = (input_size[0] / 2, input_size[1] / 2)
         scale = float(result.pixel_scale)
 
-        if result.depth_mm is not None:
-            h, w = result.depth_mm.shape
-            step = max(1, int(math.ceil(math.sqrt(h * w / MAX_POINTS))))
-            depth = np.asarray(result.depth_mm[step // 2 :: step, step // 2 :: step], dtype=np.float32)
-            rows, cols = np.nonzero(np.isfinite(depth) & (depth > 0))
-            z = depth[rows, cols] / 1000.0
-            u = (cols * step + step // 2 + 0.5) * scale
-            v = (rows * step + step // 2 + 0.5) * scale
-            points = np.stack([(u - centre[0]) * z / focal_px, (v - centre[1]) * z / focal_px, z], axis=1)
-            colour = np.asarray(result.all_in_focus[step // 2 :: step, step // 2 :: step], dtype=np.float32)[rows, cols]
-            self._stream.log(
-                "world/points",
-                rr.Points3D(points.astype(np.float32), colors=to_srgb8(colour), radii=rr.Radius.ui_points(2.0)),
-            )
+        if result.depth_mm is not None:  # scene.ply's points, on a coarser stride
+            points, rows, cols = camera.depth_map_points(result.depth_mm, scale, MAX_POINTS)
+            rgb = to_srgb8(np.asarray(result.all_in_focus, dtype=np.float32)[rows, cols], self._colour)
+            self._stream.log("world/points", rr.Points3D(points, colors=rgb, radii=rr.Radius.ui_points(2.0)))
 
         region_by_id = {r.id: r for r in result.regions}
         for index, layer in enumerate(front_to_back(result)):
@@ -794,15 +803,16 @@ class RerunRecorder:
             window = windows.get(layer.region_id) or opaque_window(np.asarray(layer.rgba)[..., 3])
             if window is None:
                 continue
-            rows, cols = window
+            window_rows, window_cols = window
+            distance_mm_at = _surface_distance(region, distance_mm, optics)
             vertices, triangles, colours = plane_mesh(
                 layer_rgba_crop(layer, window),
-                distance_mm / 1000.0,
-                focal_px,
-                centre,
+                distance_mm_at,
+                camera,
                 scale,
-                origin_px=(cols.start, rows.start),
+                origin_px=(window_cols.start, window_rows.start),
                 full_width_px=result.labels.shape[1],
+                colour=self._colour,
             )
             if len(triangles):
                 self._stream.log(
@@ -830,7 +840,7 @@ class RerunRecorder:
             crop = resize(np.ascontiguousarray(layer_rgba_crop(layer, window), dtype=np.float32), size)
             path = f"shot/multi_plane/{index:02d}"
             self._stream.log(path, rr.Transform3D(translation=[float(x0), float(y0), 0.0]))
-            self._stream.log(path, rr.Image(unpremultiplied_rgba8(crop), color_model="RGBA"))
+            self._stream.log(path, rr.Image(unpremultiplied_rgba8(crop, self._colour), color_model="RGBA"))
 
     def _log_summary(self, result: DepthResult) -> None:
         rr = self._rr
@@ -862,7 +872,7 @@ class RerunRecorder:
         small = resize(image, size)
         if small.ndim == 3 and small.shape[2] == 4:
             small = small[..., :3]
-        return _jpeg(self._rr, to_srgb8(small))
+        return _jpeg(self._rr, to_srgb8(small, self._colour))
 
     def _log_array_image(self, path: str, value: np.ndarray) -> None:
         rr = self._rr

@@ -4,30 +4,58 @@ Each shot is downloaded to a temporary name, its size checked against the
 camera's ObjectInfo, fsynced and renamed; `catalog.sqlite` records it. File
 names from the camera are untrusted and sanitised. After a disconnect the
 session reconnects and fetches what the catalog says is missing.
+
+The shutter is released once per requested shot and never again by the
+session: a release the camera refused is reported (nothing was taken), and a
+release whose answer was lost is followed by looking for the new file (on a
+reconnected camera too). Only what is safe to repeat is retried. Errors that
+end a run are `TetherError`s with a message a user can act on.
 """
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import os
 import re
+import sqlite3
 import time
 import unicodedata
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 from mca.capture.catalog import Catalog
-from mca.devices.ptp.camera import MAX_OBJECT_BYTES, Camera, CapturedObject, DeviceBusyError, PtpError
+from mca.devices.ptp.camera import (
+    MAX_OBJECT_BYTES,
+    Camera,
+    CameraNotReady,
+    CapturedObject,
+    CaptureError,
+    CaptureTicket,
+    DeviceBusyError,
+    PropertyNotReported,
+    PtpError,
+    ReleaseRefused,
+    ReleaseUncertain,
+)
 from mca.devices.ptp.codec import ProtocolError
 from mca.devices.ptp.codes import ObjectFormat
+from mca.devices.ptp.policy import DEFAULT_POLICY, PtpPolicy
 from mca.devices.ptp.transport import DeviceDisconnected, TransportError
 
 CameraFactory = Callable[[], Camera]
 MAX_FILENAME_CHARS = 100
 RETRIES = 6
-RECONNECT_ATTEMPTS = 5
+RAW_SUFFIXES = (".CR2", ".CR3", ".DNG", ".TIF", ".TIFF")
+
+
+class TetherError(TransportError):
+    """A tethered run cannot go on; the message names the camera or folder and what to do.
+
+    A `TransportError`, so callers that stop on link failures (the calibration sweep) stop on these too.
+    """
 
 
 def default_sim_frame_source(size: str | float | None = None, profile_name: str = "paper-70d") -> Callable[[int], Any]:
@@ -102,30 +130,59 @@ class SimRig:
 
     camera: Any
     backend: Any
+    scenario: str = "none"
 
 
 def make_sim_rig(
-    frame_source: Callable[[int], Any] | None = None, *, faults: Any = None, pace_bytes_per_s: float | None = None
+    frame_source: Callable[[int], Any] | None = None,
+    *,
+    faults: Any = None,
+    pace_bytes_per_s: float | None = None,
+    scenario: str | None = None,
+    live_view_source: Callable[[int], bytes] | None = None,
 ) -> SimRig:
+    """The simulated EOS 70D on a simulated USB bus; `scenario` names a fault scenario (`faults.SCENARIOS`)."""
+    from mca.devices.sim_eos70d.faults import scenario as named_scenario
     from mca.devices.sim_eos70d.responder import SimEos70D
     from mca.devices.sim_eos70d.usb_backend import SimUsbBackend
 
-    sim = SimEos70D(frame_source or default_sim_frame_source())
-    return SimRig(sim, SimUsbBackend(sim, faults=faults, pace_bytes_per_s=pace_bytes_per_s))
+    chosen = named_scenario(scenario or "none")
+    if live_view_source is None:
+        from mca.capture.live import scene_live_view_source
+
+        live_view_source = scene_live_view_source()  # rendered on the first live-view frame asked for
+    sim = SimEos70D(
+        frame_source or default_sim_frame_source(), behaviour=chosen.behaviour, live_view_source=live_view_source
+    )
+    plan = faults if faults is not None else chosen.faults
+    return SimRig(sim, SimUsbBackend(sim, faults=plan, pace_bytes_per_s=pace_bytes_per_s), chosen.name)
 
 
-def camera_factory(spec: str, *, rig: SimRig | None = None, timeout_s: float = 5.0) -> CameraFactory:
-    """A function that opens the camera named by `auto`, `sim`, `usb:BUS:ADDR` or `ptpip:HOST[:PORT]`."""
+def _policy_for(timeout_s: float | None, policy: PtpPolicy | None) -> PtpPolicy:
+    chosen = policy or DEFAULT_POLICY
+    if timeout_s is not None:
+        chosen = replace(chosen, transaction_timeout_s=timeout_s)
+    return chosen
+
+
+def camera_factory(
+    spec: str, *, rig: SimRig | None = None, timeout_s: float | None = None, policy: PtpPolicy | None = None
+) -> CameraFactory:
+    """A function that opens the camera named by `auto`, `sim[:SCENARIO]`, `usb:BUS:ADDR` or `ptpip:HOST[:PORT]`.
+
+    `timeout_s` overrides the policy's transaction timeout (tests shorten it).
+    """
     from mca.devices.ptp.transport_usb import UsbTransport, find_cameras, open_usb
 
-    if spec == "sim":
-        rig = rig or make_sim_rig()
+    chosen = _policy_for(timeout_s, policy)
+    if spec == "sim" or spec.startswith("sim:"):
+        rig = rig or make_sim_rig(scenario=spec.partition(":")[2] or None)
 
         def open_sim() -> Camera:
             if not rig.backend.connected:
                 rig.backend.replug()  # the simulated photographer plugs the cable back in
             cams = find_cameras(rig.backend)
-            return Camera.open(UsbTransport(cams[0], timeout_s=timeout_s))
+            return Camera.open(UsbTransport(cams[0], policy=chosen), policy=chosen)
 
         open_sim.rig = rig  # type: ignore[attr-defined]
         return open_sim
@@ -133,9 +190,13 @@ def camera_factory(spec: str, *, rig: SimRig | None = None, timeout_s: float = 5
         from mca.devices.ptp.transport_ptpip import PtpIpTransport
 
         host, _, port = spec[len("ptpip:") :].partition(":")
-        return lambda: Camera.open(PtpIpTransport(host or "127.0.0.1", int(port or 15740), timeout_s=timeout_s))
+        try:
+            port_number = int(port or 15740)
+        except ValueError as exc:
+            raise ValueError(f"PTP/IP port must be a number, got {port!r} in {spec!r}") from exc
+        return lambda: Camera.open(PtpIpTransport(host or "127.0.0.1", port_number, policy=chosen), policy=chosen)
     if spec.startswith("usb:"):
-        return lambda: Camera.open(open_usb(spec, timeout_s=timeout_s))
+        return lambda: Camera.open(open_usb(spec, policy=chosen), policy=chosen)
     if spec == "auto":
 
         def open_auto() -> Camera:
@@ -145,16 +206,19 @@ def camera_factory(spec: str, *, rig: SimRig | None = None, timeout_s: float = 5
                     "no PTP camera on USB: connect and switch on the EOS 70D, "
                     "or use `--camera sim` for the simulated one"
                 )
-            return Camera.open(UsbTransport(cams[0], timeout_s=timeout_s))
+            return Camera.open(UsbTransport(cams[0], policy=chosen), policy=chosen)
 
         return open_auto
-    raise ValueError(f"unknown camera {spec!r}: use auto, sim, usb:BUS:ADDR or ptpip:HOST:PORT")
+    raise ValueError(f"unknown camera {spec!r}: use auto, sim, sim:SCENARIO, usb:BUS:ADDR or ptpip:HOST:PORT")
 
 
 # -- the session ------------------------------------------------------------
 @dataclass(frozen=True)
 class ShotResult:
-    shot_id: int
+    """What became of one file: `status` is downloaded, processed, captured (on the card, download pending),
+    failed, or refused (the camera took no picture)."""
+
+    shot_id: int | None
     path: Path | None
     status: str
     message: str = ""
@@ -186,11 +250,28 @@ class TetherSession:
         log: Callable[[str], None] = lambda msg: None,
         progress: Callable[[int, int], None] | None = None,
         capture_target: str | None = "card",
+        policy: PtpPolicy = DEFAULT_POLICY,
     ) -> None:
         self.factory = factory
         self.out_dir = Path(out_dir)
-        self.out_dir.mkdir(parents=True, exist_ok=True)
-        self.catalog = Catalog(self.out_dir / "catalog.sqlite")
+        self.policy = policy
+        try:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            probe = self.out_dir / ".mca-write-test"
+            probe.write_bytes(b"")
+            probe.unlink()
+        except OSError as exc:
+            raise TetherError(
+                f"cannot use {self.out_dir} as the output folder: {exc.strerror or exc}; "
+                "choose a folder you can write to with --out"
+            ) from exc
+        try:
+            self.catalog = Catalog(self.out_dir / "catalog.sqlite")
+        except (sqlite3.Error, OSError) as exc:
+            raise TetherError(
+                f"cannot open the catalog {self.out_dir / 'catalog.sqlite'}: {exc}; "
+                "move the damaged file aside (the shots next to it are untouched) and run again"
+            ) from exc
         self.delete_after_verify = delete_after_verify
         self.process = process
         self.profile = profile
@@ -200,13 +281,16 @@ class TetherSession:
         self.capture_target = capture_target
         self.camera: Camera | None = None
         self.reconnects = 0
+        self.results: list[ShotResult] = []  # every file of this run, in order (also after Ctrl-C)
+        self.shot_ids: list[int] = []  # catalog rows made or touched by this run
+        self._seen: set[tuple[str, int, bool]] = set()  # (camera file name, handle, in RAM) stored this run
         self._profile_obj: Any = None
         self._recorder: Any = None
 
     # connection ------------------------------------------------------------
     def connect(self) -> Camera:
         last: Exception | None = None
-        for attempt in range(RECONNECT_ATTEMPTS):
+        for attempt in range(self.policy.reconnect_attempts):
             try:
                 cam = self.factory()
                 if cam.is_eos and self.capture_target:
@@ -214,12 +298,12 @@ class TetherSession:
                 self.camera = cam
                 self.recover_missing()
                 return cam
-            except (TransportError, ProtocolError, PtpError) as exc:
+            except (TransportError, ProtocolError, PtpError, PropertyNotReported) as exc:
                 last = exc
                 self._drop_camera()
                 time.sleep(min(2.0, 0.05 * 2**attempt))
-        raise TransportError(
-            f"could not reconnect to the camera after {RECONNECT_ATTEMPTS} attempts: {last}; "
+        raise TetherError(
+            f"could not connect to the camera after {self.policy.reconnect_attempts} attempts: {last}; "
             "check the cable and that the camera is on"
         )
 
@@ -258,7 +342,8 @@ class TetherSession:
         self.catalog.close()
 
     def _retrying(self, what: str, fn: Callable[[Camera], Any]) -> Any:
-        """Run `fn(camera)`, retrying after busy answers, protocol faults, timeouts and reconnecting after disconnects."""
+        """Run `fn(camera)` (something safe to repeat), retrying after busy answers and link faults and
+        reconnecting after disconnects. A definite error answer from the camera ends it with `TetherError`."""
         last: Exception | None = None
         for attempt in range(RETRIES):
             cam = self._cam()
@@ -268,6 +353,8 @@ class TetherSession:
                 last = exc
                 self.log(f"{what}: camera busy, retrying")
                 time.sleep(min(1.0, 0.02 * 2**attempt))
+            except PtpError as exc:
+                raise TetherError(f"{what}: {exc}") from exc
             except DeviceDisconnected as exc:
                 last = exc
                 self.log(f"{what}: {exc}; reconnecting")
@@ -276,21 +363,81 @@ class TetherSession:
             except (ProtocolError, TransportError) as exc:
                 last = exc
                 self.log(f"{what}: {exc}; resetting the link")
-                if cam.transport.__class__.__name__ == "PtpIpTransport":
+                if not cam.transport.can_resume or cam.transport.__class__.__name__ == "PtpIpTransport":
                     self._drop_camera()  # a TCP stream cannot be resynchronised
                     self.reconnects += 1
-        raise TransportError(f"{what} failed after {RETRIES} attempts: {last}")
+        raise TetherError(f"{what} failed after {RETRIES} attempts: {last}")
 
     # shots -----------------------------------------------------------------
+    def _trigger(self) -> CaptureTicket:
+        """Release the shutter once. Failures before the release are retried; the release itself never is."""
+        last: Exception | None = None
+        for attempt in range(RETRIES):
+            cam = self._cam()
+            try:
+                return cam.trigger()
+            except (ReleaseRefused, ReleaseUncertain):
+                raise
+            except CameraNotReady as exc:
+                last = exc
+                self.log("the camera is busy; waiting before the release")
+                time.sleep(min(1.0, 0.05 * 2**attempt))
+            except PtpError as exc:
+                last = exc
+                self.log(f"before the release: {exc}; trying again")
+                time.sleep(min(1.0, 0.05 * 2**attempt))
+            except DeviceDisconnected as exc:
+                last = exc
+                self.log(f"before the release: {exc}; reconnecting")
+                self._drop_camera()
+                self.reconnects += 1
+            except (ProtocolError, TransportError) as exc:
+                last = exc
+                self.log(f"before the release: {exc}; resetting the link")
+                if not cam.transport.can_resume or cam.transport.__class__.__name__ == "PtpIpTransport":
+                    self._drop_camera()
+                    self.reconnects += 1
+        raise TetherError(f"could not get the camera ready to shoot: {last}")
+
     def capture(self, count: int = 1, interval_s: float = 0.0) -> list[ShotResult]:
-        results = []
+        """Take `count` pictures: one release each; every file a release made is downloaded (RAW+JPEG: both)."""
+        results: list[ShotResult] = []
         for i in range(count):
             started = time.monotonic()
-            obj = self._retrying("capture", lambda cam: cam.capture())
-            results.append(self._store_new(obj))
+            results += self.capture_one()
             if i + 1 < count and interval_s > 0:
                 time.sleep(max(0.0, interval_s - (time.monotonic() - started)))
         return results
+
+    def capture_one(self) -> list[ShotResult]:
+        try:
+            ticket = self._trigger()
+        except ReleaseRefused as exc:
+            self.log(str(exc))
+            return [self._note(ShotResult(None, None, "refused", str(exc)))]
+        except ReleaseUncertain as exc:
+            self.log(str(exc))
+            ticket = exc.ticket
+            if self.camera is not None and not self.camera.transport.can_resume:
+                self._drop_camera()
+        try:
+            objects = self._retrying("waiting for the new file", lambda cam: cam.wait_for_capture(ticket))
+        except CaptureError as exc:
+            self.log(str(exc))
+            return [self._note(ShotResult(None, None, "failed", str(exc)))]
+        out = [self._store_new(obj) for obj in objects]
+        out += self._store_unclaimed()
+        return [r for r in out if r is not None]
+
+    def _store_unclaimed(self) -> list[ShotResult]:
+        """Files that appeared without our release (the camera's own shutter button) are kept too."""
+        cam = self.camera
+        out = []
+        while cam is not None and cam.unclaimed:
+            result = self._store_new(cam.unclaimed.pop(0))
+            if result is not None:
+                out.append(result)
+        return out
 
     def tethered(self, stop: Callable[[], bool], *, max_shots: int | None = None) -> list[ShotResult]:
         """Download each shot taken with the camera's own shutter button until `stop()` (or `max_shots`)."""
@@ -298,24 +445,36 @@ class TetherSession:
         while not stop() and (max_shots is None or len(results) < max_shots):
             obj = self._retrying("waiting for a shot", lambda cam: cam.wait_for_object(0.5, stop=stop))
             if obj is not None:
-                results.append(self._store_new(obj))
+                result = self._store_new(obj)
+                if result is not None:
+                    results.append(result)
         return results
 
-    def _store_new(self, obj: CapturedObject) -> ShotResult:
+    def _note(self, result: ShotResult) -> ShotResult:
+        self.results.append(result)
+        return result
+
+    def _store_new(self, obj: CapturedObject) -> ShotResult | None:
+        key = (obj.filename, obj.handle, obj.in_ram)
+        if key in self._seen:
+            return None
+        self._seen.add(key)
         serial = self._cam().serial_number
         shot_id = self.catalog.add_captured(serial, obj.filename, obj.handle, obj.size_bytes)
-        return self._fetch(shot_id, obj)
+        self.shot_ids.append(shot_id)
+        return self._note(self._fetch(shot_id, obj))
 
     def _fetch(self, shot_id: int, obj: CapturedObject) -> ShotResult:
         try:
             path = self._retrying(f"download of {obj.filename}", lambda cam: self._download(cam, shot_id, obj))
-        except (TransportError, ValueError, OSError) as exc:
-            if isinstance(exc, TransportError) and obj.in_ram is False:
-                self.catalog.note(shot_id, f"download pending: {exc}")
-                return ShotResult(shot_id, None, "captured", str(exc))
-            self.catalog.mark_failed(shot_id, str(exc))
-            return ShotResult(shot_id, None, "failed", str(exc))
-        if self.process and self.catalog.get(shot_id).status == "downloaded":
+        except (TetherError, ValueError, OSError) as exc:
+            message = _describe(exc, self.out_dir)
+            if not obj.in_ram:  # the file is still on the card: the next run (or reconnect) fetches it
+                self.catalog.note(shot_id, f"download pending: {message}")
+                return ShotResult(shot_id, None, "captured", f"still on the camera's card: {message}")
+            self.catalog.mark_failed(shot_id, message)
+            return ShotResult(shot_id, None, "failed", message)
+        if self.process and self.catalog.get(shot_id).status == "downloaded" and _is_raw(path):
             return self._process(shot_id, path)
         return ShotResult(shot_id, path, "downloaded")
 
@@ -336,17 +495,22 @@ class TetherSession:
         name = sanitize_filename(obj.filename, self.catalog.file_names() | set(os.listdir(self.out_dir)))
         final = _safe_target(self.out_dir, name)
         tmp = _safe_target(self.out_dir, f".{name}.part")
-        with open(tmp, "wb") as fh:
-            writer = _HashingWriter(fh)
-            cam.download(handle, expected, writer, progress=self.progress)  # type: ignore[arg-type]
-            fh.flush()
-            os.fsync(fh.fileno())
-        if writer.size_bytes != expected or tmp.stat().st_size != expected:
-            tmp.unlink(missing_ok=True)
-            raise ProtocolError(
-                f"{cam.name} sent {writer.size_bytes} bytes for {obj.filename!r}, ObjectInfo says {expected}"
-            )
-        os.replace(tmp, final)
+        renamed = False
+        try:
+            with open(tmp, "wb") as fh:
+                writer = _HashingWriter(fh)
+                cam.download(handle, expected, writer, progress=self.progress)  # type: ignore[arg-type]
+                fh.flush()
+                os.fsync(fh.fileno())
+            if writer.size_bytes != expected or tmp.stat().st_size != expected:
+                raise ProtocolError(
+                    f"{cam.name} sent {writer.size_bytes} bytes for {obj.filename!r}, ObjectInfo says {expected}"
+                )
+            os.replace(tmp, final)
+            renamed = True
+        finally:
+            if not renamed:
+                tmp.unlink(missing_ok=True)  # a full disk or a failed link leaves no .part behind
         dir_fd = os.open(self.out_dir, os.O_RDONLY)
         try:
             os.fsync(dir_fd)
@@ -381,8 +545,11 @@ class TetherSession:
         results = []
         for row in self.catalog.missing(cam.serial_number):
             obj = CapturedObject(row.camera_handle or 0, row.camera_filename, row.size_bytes or 0, 0, 0, False)
-            self.log(f"fetching {row.camera_filename} (shot {row.id}) that a disconnect left on the card")
-            results.append(self._fetch(row.id, obj))
+            self.log(f"fetching {row.camera_filename} (shot {row.id}) that an earlier run left on the card")
+            if row.id not in self.shot_ids:
+                self.shot_ids.append(row.id)
+            self._seen.add((obj.filename, obj.handle, False))
+            results.append(self._note(self._fetch(row.id, obj)))
         return results
 
     def _process(self, shot_id: int, path: Path) -> ShotResult:
@@ -411,6 +578,29 @@ class TetherSession:
         result_path = str(getattr(outcome, "output_dir", outcome))
         self.catalog.mark_processed(shot_id, result_path)
         return ShotResult(shot_id, path, "processed", result_path)
+
+    # the run's summary -----------------------------------------------------
+    def summary_rows(self) -> list[Any]:
+        """The catalog rows of this run, including shots still in flight (captured, not yet on disk)."""
+        out = []
+        for shot_id in self.shot_ids:
+            try:
+                out.append(self.catalog.get(shot_id))
+            except KeyError:
+                continue
+        return out
+
+
+def _is_raw(path: Path) -> bool:
+    return path.suffix.upper() in RAW_SUFFIXES
+
+
+def _describe(exc: BaseException, out_dir: Path) -> str:
+    if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+        return f"the disk holding {out_dir} is full; free space and run again (the file stays on the card)"
+    if isinstance(exc, OSError) and exc.errno in (errno.EACCES, errno.EROFS, errno.EPERM):
+        return f"cannot write into {out_dir}: {exc.strerror}"
+    return str(exc)
 
 
 def _sha256_file(path: Path) -> str:

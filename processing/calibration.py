@@ -109,7 +109,7 @@ def plane_shift_px(
     yy, xx = np.mgrid[rows, cols].astype(np.float64)
     coeffs = ndimage.spline_filter(m_norm, order=3, mode="mirror")
     iterations = 0
-    for iterations in range(1, max_iterations + 1):
+    for iterations in range(1, max_iterations + 1):  # noqa: B007 (the count is reported after the loop)
         coords = np.stack([yy - dy, xx - dx])
         warped = ndimage.map_coordinates(coeffs, coords, order=3, mode="mirror", prefilter=False)
         gy, gx = np.gradient(warped)
@@ -201,7 +201,10 @@ class LensModel:
         """d_a (d_ls - v) / v / pitch + offset (eq. 11 with Δd = d_ls - v)."""
         return (
             thin_lens_disparity_mm(
-                distance_mm, self.sensor_distance_mm, self.focal_length_mm, self.filter_centre_distance_mm
+                distance_mm,  # type: ignore[type-var]
+                self.sensor_distance_mm,
+                self.focal_length_mm,
+                self.filter_centre_distance_mm,
             )
             / self.pixel_pitch_mm
             + self.disparity_offset_px

@@ -166,7 +166,7 @@ def _crosstalk(table: Mapping[str, Any], source: str) -> tuple[tuple[float, floa
     field = "aperture.crosstalk"
     if not isinstance(value, (list, tuple)) or len(value) != 3:
         raise ProfileError(field, "must be a 3x3 matrix [[..],[..],[..]] (sensor channel <- filter)", source)
-    rows = []
+    rows: list[tuple[float, float, float]] = []
     for row in value:
         if (
             not isinstance(row, (list, tuple))
@@ -177,7 +177,7 @@ def _crosstalk(table: Mapping[str, Any], source: str) -> tuple[tuple[float, floa
             raise ProfileError(
                 field, f"each row must hold three numbers of at most {MAX_CROSSTALK:g}, got {row!r}", source
             )
-        rows.append(tuple(float(v) for v in row))
+        rows.append((float(row[0]), float(row[1]), float(row[2])))
     a = rows
     det = (
         a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1])
@@ -186,7 +186,7 @@ def _crosstalk(table: Mapping[str, Any], source: str) -> tuple[tuple[float, floa
     )
     if abs(det) < 1e-6:
         raise ProfileError(field, "is singular: the channels could not be separated", source)
-    return tuple(rows)  # type: ignore[return-value]
+    return (rows[0], rows[1], rows[2])
 
 
 def profile_from_mapping(data: Mapping[str, Any], source: str = "<profile>") -> CameraProfile:
@@ -249,8 +249,11 @@ def profile_from_mapping(data: Mapping[str, Any], source: str = "<profile>") -> 
                 )
             sensor = focal * focus / (focus - focal)
         else:
-            sensor = _number(lens_table, "sensor_distance_mm", "lens.sensor_distance_mm", source, maximum=MAX_LENS_MM)
-            assert sensor is not None
+            given = _number(
+                lens_table, "sensor_distance_mm", "lens.sensor_distance_mm", source, maximum=MAX_LENS_MM
+            )
+            assert given is not None
+            sensor = given
             if sensor <= focal:
                 raise ProfileError(
                     "lens.sensor_distance_mm",

@@ -9,6 +9,7 @@ replaced by the absolute error in mm, as the paper's relative error is undefined
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import cv2
@@ -164,9 +165,16 @@ class Summary:
 def summarise(evaluations: list[SceneEvaluation], methods: list[str]) -> Summary:
     median, worst, focus = {}, {}, {}
     for m in methods:
-        rel = [r.rel_error(m) for e in evaluations for r in e.rows if r.rel_error(m) is not None]
-        rel = [v if np.isfinite(v) else np.inf for v in rel]
-        foc = [r.abs_error_mm(m) for e in evaluations for r in e.rows if r.rel_error(m) is None]
+        known = [r.rel_error(m) for e in evaluations for r in e.rows]
+        rel = [float(v) if np.isfinite(v) else np.inf for v in known if v is not None]
+        foc = [
+            float(v)
+            for e in evaluations
+            for r in e.rows
+            if r.rel_error(m) is None
+            for v in [r.abs_error_mm(m)]
+            if v is not None
+        ]
         median[m] = float(np.median(rel)) if rel else float("nan")
         worst[m] = float(np.max(rel)) if rel else float("nan")
         focus[m] = float(np.max(foc)) if foc else float("nan")
@@ -212,3 +220,208 @@ def bayer_planes(mosaic: np.ndarray, black_level: float, white_level: float) -> 
     """
     m = (mosaic.astype(np.float32) - np.float32(black_level)) / np.float32(white_level - black_level)
     return np.dstack([m[0::2, 0::2], 0.5 * (m[0::2, 1::2] + m[1::2, 0::2]), m[1::2, 1::2]]).astype(np.float32)
+
+
+# --- per-pixel figures on rendered real scenes (mca evaluate --rgbd) -------------------------------------------------
+
+EDGE_JUMP_PX = 0.5  # a true depth edge: 8-neighbours whose red-blue disparities differ by more than this
+EDGE_BAND_PX = 5  # pixels within this distance of a true depth edge are "near edges"
+MIN_OFF_FOCUS_MM = 25.0  # relative inter-object error only where the truth is this far off the focus plane
+
+
+@dataclass
+class PixelMetrics:
+    """Per-pixel accuracy of one disparity/depth map against the truth of a rendering.
+
+    Shares are of truth-valid pixels; a missing estimate (NaN) counts as bad and as an infinite
+    error in the medians (so a median is infinite when over half the pixels have no value).
+    """
+
+    bad_1: float  # share with |disparity error| > 1 px
+    bad_05: float  # share with |disparity error| > 0.5 px
+    edge_bad_1: float  # the same within EDGE_BAND_PX of true depth edges (NaN when there are none)
+    edge_bad_05: float
+    median_abs_depth_mm: float  # median |Z_est - Z_true|
+    median_rel_inter_object: float  # median |Z_est - Z_true| / |Z_true - F| where |Z_true - F| >= 25 mm
+    coverage: float  # share with a value
+    valid_px: int
+    edge_px: int
+
+    FIELDS = (
+        "bad_1",
+        "bad_05",
+        "edge_bad_1",
+        "edge_bad_05",
+        "median_abs_depth_mm",
+        "median_rel_inter_object",
+        "coverage",
+    )
+
+    def as_dict(self) -> dict[str, float | int]:
+        return {name: getattr(self, name) for name in self.FIELDS + ("valid_px", "edge_px")}
+
+
+def depth_edge_band(
+    true_disparity_px: np.ndarray, jump_px: float = EDGE_JUMP_PX, band_px: int = EDGE_BAND_PX
+) -> np.ndarray:
+    """Truth-valid pixels within `band_px` (Euclidean) of a true depth edge: a pair of 8-neighbours, both
+    known, whose disparities differ by more than `jump_px`."""
+    d = np.asarray(true_disparity_px, np.float32)
+    valid = np.isfinite(d)
+    edges = np.zeros(d.shape, bool)
+    h, w = d.shape
+    padded = np.pad(d, 1, constant_values=np.nan)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dy or dx:
+                neighbour = padded[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
+                edges |= np.abs(d - neighbour) > jump_px  # NaN compares False: unknown pixels make no edge
+    if not edges.any():
+        return np.zeros(d.shape, bool)
+    size = 2 * band_px + 1
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
+    near = cv2.dilate(edges.astype(np.uint8), disk).astype(bool)
+    return near & valid
+
+
+def pixel_metrics(
+    estimate_disparity_px: np.ndarray,
+    estimate_distance_mm: np.ndarray | None,
+    true_disparity_px: np.ndarray,
+    true_distance_mm: np.ndarray,
+    focus_distance_mm: float,
+    edge_band: np.ndarray | None = None,
+) -> PixelMetrics:
+    """The figures of `PixelMetrics` for one estimate (maps at the truth's size, NaN = no value).
+
+    Without `estimate_distance_mm` the depth figures are NaN (a disparity-only method).
+    """
+    true_d = np.asarray(true_disparity_px, np.float32)
+    est_d = np.asarray(estimate_disparity_px, np.float32)
+    if est_d.shape != true_d.shape:
+        raise ValueError(f"estimate {est_d.shape} and truth {true_d.shape} differ in size")
+    valid = np.isfinite(true_d) & np.isfinite(np.asarray(true_distance_mm, np.float32))
+    n = int(valid.sum())
+    if n == 0:
+        raise ValueError("the truth has no valid pixel")
+    band = depth_edge_band(true_d) if edge_band is None else (edge_band & valid)
+    error = np.abs(est_d - true_d)
+    error = np.where(np.isfinite(error), error, np.inf)
+
+    def share_bad(mask: np.ndarray, limit: float) -> float:
+        count = int(mask.sum())
+        return float(np.count_nonzero(error[mask] > limit)) / count if count else float("nan")
+
+    abs_depth = rel = float("nan")
+    if estimate_distance_mm is not None:
+        z_true = np.asarray(true_distance_mm, np.float64)
+        z_est = np.asarray(estimate_distance_mm, np.float64)
+        dz = np.abs(z_est - z_true)
+        dz = np.where(np.isfinite(dz), dz, np.inf)
+        abs_depth = float(np.median(dz[valid]))
+        off = valid & (np.abs(z_true - focus_distance_mm) >= MIN_OFF_FOCUS_MM)
+        if off.any():
+            rel = float(np.median(dz[off] / np.abs(z_true[off] - focus_distance_mm)))
+    return PixelMetrics(
+        bad_1=share_bad(valid, 1.0),
+        bad_05=share_bad(valid, 0.5),
+        edge_bad_1=share_bad(band, 1.0),
+        edge_bad_05=share_bad(band, 0.5),
+        median_abs_depth_mm=abs_depth,
+        median_rel_inter_object=rel,
+        coverage=float(np.count_nonzero(np.isfinite(est_d[valid]))) / n,
+        valid_px=n,
+        edge_px=int(band.sum()),
+    )
+
+
+@dataclass
+class RgbdRow:
+    """One render's figures for every method; `status[method]` says why a method has none ("not built", ...)."""
+
+    name: str
+    group: str
+    metrics: dict[str, PixelMetrics]
+    status: dict[str, str] = field(default_factory=dict)
+    seconds: dict[str, float] = field(default_factory=dict)
+    summary: str = ""
+
+
+# figures where lower is better; coverage is the one where higher is better
+_HIGHER_IS_BETTER = {"coverage"}
+
+
+def summarise_rgbd(rows: list[RgbdRow], methods: list[str]) -> dict[str, dict[str, dict[str, float]]]:
+    """{method: {figure: {"median": .., "worst": .., "count": n}}} over the rows that have the method."""
+    summary: dict[str, dict[str, dict[str, float]]] = {}
+    for method in methods:
+        have = [r.metrics[method] for r in rows if method in r.metrics]
+        figures: dict[str, dict[str, float]] = {}
+        for name in PixelMetrics.FIELDS:
+            values = np.array([getattr(m, name) for m in have], np.float64)
+            values = values[~np.isnan(values)]
+            if values.size == 0:
+                figures[name] = {"median": float("nan"), "worst": float("nan"), "count": 0}
+                continue
+            worst = values.min() if name in _HIGHER_IS_BETTER else values.max()
+            figures[name] = {"median": float(np.median(values)), "worst": float(worst), "count": int(values.size)}
+        summary[method] = figures
+    return summary
+
+
+_COLUMNS = (
+    ("bad_1", "bad-1", "pct"),
+    ("bad_05", "bad-.5", "pct"),
+    ("edge_bad_1", "edge-1", "pct"),
+    ("edge_bad_05", "edge-.5", "pct"),
+    ("median_abs_depth_mm", "|dZ| mm", "mm"),
+    ("median_rel_inter_object", "rel dD", "pct"),
+    ("coverage", "cover", "pct"),
+)
+
+
+def _cell(value: float, kind: str) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    if math.isinf(value):
+        return "inf"
+    return f"{100 * value:.1f}%" if kind == "pct" else f"{value:.1f}"
+
+
+def format_rgbd_table(rows: list[RgbdRow], methods: list[str]) -> str:
+    """One line per render and method, then per group and overall the median and worst of each figure."""
+    head = f"{'render':<22} {'method':<9}" + "".join(f" {title:>8}" for _, title, _ in _COLUMNS) + f" {'s':>6}"
+    lines = [head, "-" * len(head)]
+    for row in rows:
+        name = row.name if row.group in ("", ".") else f"{row.group}/{row.name}"
+        for method in methods:
+            label = f"{name:<22} {method:<9}"
+            if method not in row.metrics:
+                lines.append(f"{label} {row.status.get(method, 'no result')}")
+                continue
+            m = row.metrics[method]
+            seconds = row.seconds.get(method)
+            lines.append(
+                label
+                + "".join(f" {_cell(getattr(m, key), kind):>8}" for key, _, kind in _COLUMNS)
+                + (f" {seconds:6.1f}" if seconds is not None else "")
+            )
+    groups = sorted({r.group for r in rows})
+    for group in groups + (["all"] if len(groups) > 1 else []):
+        members = [r for r in rows if group in ("all", r.group)]
+        summary = summarise_rgbd(members, methods)
+        lines.append("-" * len(head))
+        for which in ("median", "worst"):
+            for method in methods:
+                figures = summary[method]
+                count = figures["bad_1"]["count"]
+                label = f"{(group if group not in ('', '.') else 'all') + ' ' + which:<22} {method:<9}"
+                if not count:
+                    lines.append(f"{label} no result")
+                    continue
+                lines.append(
+                    label
+                    + "".join(f" {_cell(figures[key][which], kind):>8}" for key, _, kind in _COLUMNS)
+                    + f"  ({count} render{'s' if count != 1 else ''})"
+                )
+    return "\n".join(lines)

@@ -72,7 +72,7 @@ def inter_object_depth_mm(inter_image_depth: Value, sensor_distance_mm: float, f
     far = inter_object_depth_far_mm(np.maximum(depth, 0.0), sensor_distance_mm, focal_length_mm)
     near = -inter_object_depth_near_mm(np.maximum(-depth, 0.0), sensor_distance_mm, focal_length_mm)
     result = np.where(depth >= 0, far, near)
-    return result if isinstance(inter_image_depth, np.ndarray) else float(result)  # type: ignore[return-value]
+    return result if isinstance(inter_image_depth, np.ndarray) else float(result)  # type: ignore[return-value,unused-ignore]
 
 
 def inter_image_depth_from_inter_object_depth_mm(

@@ -629,8 +629,9 @@ def truth_rasters(
             masks[layer.id] = ((left, top, right, bottom), np.zeros((0, 0), bool))
             continue
         mask = rasterize(layer.shape, frame_h, (left, top), (bottom - top, right - left)) >= 0.5
+        surface: np.ndarray
         if layer.slant is None:
-            surface = np.float32(layer.distance_mm)
+            surface = np.asarray(layer.distance_mm, np.float32)
         else:
             along = np.arange(left, right) if layer.slant.axis == "x" else np.arange(top, bottom)
             ramp = np.asarray(layer.distance_at_mm((along + 0.5) / frame_h), np.float32)

@@ -147,7 +147,7 @@ def test_a_grbl_alarm_mid_sweep_names_the_port(tmp_path: Path) -> None:
     def alarm(point: cal.CalibrationPoint) -> None:
         rail.simulator.trigger_alarm(1)
 
-    with pytest.raises(cal.CalibrationError, match="alarm|ALARM|Alarm") as info:
+    with pytest.raises(cal.CalibrationError, match=r"alarm|ALARM|Alarm") as info:
         try:
             cal.run_sweep(plan, PROFILE, tmp_path, camera_factory=factory, rail=rail, on_point=alarm)
         finally:

@@ -259,8 +259,8 @@ def test_dry_run_system_install_lists_every_step_and_changes_nothing(tmp_path: P
     assert f"+ python3 -m venv {prefix}/venv" in lines
     assert any(line.startswith(f"+ {prefix}/venv/bin/python -m pip install --upgrade {REPO}") for line in lines)
     assert any(
-        re.match(r"\+ (useradd --system .*--groups plugdev\\?,dialout .* mca|usermod .*plugdev.* mca)$", l)
-        for l in lines
+        re.match(r"\+ (useradd --system .*--groups plugdev\\?,dialout .* mca|usermod .*plugdev.* mca)$", line)
+        for line in lines
     ), out
     assert "+ install -d -o mca -g mca -m 0750 /var/lib/mca /var/lib/mca/raw /var/lib/mca/processed" in lines
     for source, dest in [

@@ -51,3 +51,20 @@ def test_paper_f_beats_the_peers():
 def test_cli_lists_in_help():
     out = CliRunner().invoke(app, ["evaluate", "--help"])
     assert out.exit_code == 0 and "Table 2" in out.output
+
+
+def test_table_2_reads_the_scenes_from_a_render_folder_and_renders_only_what_is_missing(tmp_path):
+    def object_rows(output: str) -> list[str]:  # the Table 2 lines of paper-g, without the timed summary line
+        return [line for line in output.splitlines() if line.startswith("paper-g ") and "regions" not in line]
+
+    args = ["evaluate", "--scene", "paper-g", "--scale", "0.125", "--no-peers", "--renders", str(tmp_path)]
+    first = CliRunner().invoke(app, args)
+    assert first.exit_code == 0, first.output
+    assert "paper-g: rendering into" in first.output
+    assert (tmp_path / "paper-g.CR2").is_file() and (tmp_path / "truth" / "paper-g.truth.json").is_file()
+    second = CliRunner().invoke(app, args)
+    assert second.exit_code == 0, second.output
+    assert "rendering into" not in second.output  # read from the folder: the CR2 and truth/
+    memory = CliRunner().invoke(app, args[:-2])  # rendered in memory, as without --renders
+    assert len(object_rows(first.output)) == 3
+    assert object_rows(first.output) == object_rows(second.output) == object_rows(memory.output)

@@ -56,6 +56,14 @@ def served_sim():
             proc.wait(5)
 
 
+def _clean(run: subprocess.CompletedProcess) -> None:
+    """gphoto2 printed no error and no warning (it once printed "Canon EOS Full-Press failed" and "ERROR:
+    Could not capture image" against the simulator, and an "error 0x2005" for a missing folder listing)."""
+    text = (run.stdout + run.stderr).lower()
+    for word in ("error", "warning", "failed"):
+        assert word not in text, run.stdout + run.stderr
+
+
 def _expected_first_shot() -> bytes:
     from mca.capture.tether import default_sim_frame_source
 
@@ -93,6 +101,7 @@ def test_gphoto2_cli_capture_and_download_gives_a_cr2_rawpy_opens(served_sim: in
     )
     assert summary.returncode == 0, summary.stderr
     assert "Model: Canon EOS 70D" in summary.stdout
+    _clean(summary)
     run = subprocess.run(
         ["gphoto2", "--port", port, "--capture-image-and-download", "--filename", "shot.cr2"],
         capture_output=True,
@@ -101,8 +110,28 @@ def test_gphoto2_cli_capture_and_download_gives_a_cr2_rawpy_opens(served_sim: in
         cwd=tmp_path,
     )
     assert run.returncode == 0, run.stderr
+    _clean(run)
     data = (tmp_path / "shot.cr2").read_bytes()
     assert data == _expected_first_shot()
+    to_card = subprocess.run(
+        [
+            "gphoto2",
+            "--port",
+            port,
+            "--set-config",
+            "capturetarget=1",
+            "--capture-image-and-download",
+            "--filename",
+            "card.cr2",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=tmp_path,
+    )
+    assert to_card.returncode == 0, to_card.stderr
+    _clean(to_card)
+    assert "/store_00020001/DCIM/100CANON/IMG_0002.CR2" in to_card.stdout and (tmp_path / "card.cr2").stat().st_size
     if data[8:10] == b"CR":
         rawpy = pytest.importorskip("rawpy")
         with rawpy.imread(str(tmp_path / "shot.cr2")) as raw:

@@ -41,12 +41,12 @@ def test_ply_rejects_mismatched_colours(tmp_path):
 
 
 def _quad(name, z_mm, half_mm, colour):
+    """A square facing the camera, `z_mm` in front of it, in the scene frame (metres, y up, looking down -z)."""
     texture = np.zeros((6, 8, 4), np.uint8)
     texture[..., :3] = colour
     texture[..., 3] = 255
-    corners = np.array(
-        [[-half_mm, -half_mm, z_mm], [half_mm, -half_mm, z_mm], [half_mm, half_mm, z_mm], [-half_mm, half_mm, z_mm]]
-    )
+    z, h = -z_mm / 1000, half_mm / 1000
+    corners = np.array([[-h, h, z], [h, h, z], [h, -h, z], [-h, -h, z]])  # image top-left, top-right, ...
     return outputs.TexturedQuad(name, corners, outputs.encode_png(texture), extras={"distance_mm": z_mm})
 
 
@@ -61,7 +61,7 @@ def test_glb_parsed_back(tmp_path):
     assert gltf["asset"]["version"] == "2.0"
     assert len(binary) == gltf["buffers"][0]["byteLength"] and len(binary) % 4 == 0
     root = gltf["nodes"][gltf["scenes"][gltf["scene"]]["nodes"][0]]
-    assert root["matrix"][0] == pytest.approx(0.001) and root["matrix"][5] == pytest.approx(-0.001)
+    assert "matrix" not in root and "cameras" not in gltf  # positions are metres in glTF's frame as they stand
     assert [gltf["nodes"][i]["name"] for i in root["children"]] == ["near", "far"]
     for view in gltf["bufferViews"]:
         assert view["byteOffset"] % 4 == 0 and view["byteOffset"] + view["byteLength"] <= len(binary)
@@ -69,7 +69,7 @@ def test_glb_parsed_back(tmp_path):
         primitive = gltf["meshes"][mesh_index]["primitives"][0]
         position = gltf["accessors"][primitive["attributes"]["POSITION"]]
         values = outputs.glb_accessor(gltf, binary, primitive["attributes"]["POSITION"])
-        np.testing.assert_allclose(values, quad.corners_mm, rtol=1e-6)
+        np.testing.assert_allclose(values, quad.corners_m, rtol=1e-6)
         assert position["min"] == pytest.approx(values.min(axis=0).tolist())
         assert position["max"] == pytest.approx(values.max(axis=0).tolist())
         indices = outputs.glb_accessor(gltf, binary, primitive["indices"]).ravel()
@@ -91,14 +91,13 @@ def test_glb_without_quads_is_valid(tmp_path):
 
 
 def test_glb_quad_faces_the_camera():
-    # after the root transform (y up, z toward the viewer) the triangles wind counter-clockwise
+    # seen from the camera (at the origin, looking down -z) the triangles wind counter-clockwise
     data = outputs.encode_glb([_quad("q", 1000.0, 10.0, (1, 2, 3))])
     length = struct.unpack_from("<I", data, 12)[0]
     gltf = json.loads(data[20 : 20 + length])
     binary = data[20 + length + 8 :]
     corners = outputs.glb_accessor(gltf, binary, 0).astype(float)
-    world = corners * [1, -1, -1]
-    tri = world[outputs.glb_accessor(gltf, binary, 2).ravel()[:3]]
+    tri = corners[outputs.glb_accessor(gltf, binary, 2).ravel()[:3]]
     normal = np.cross(tri[1] - tri[0], tri[2] - tri[0])
     assert normal[2] > 0
 
@@ -159,12 +158,18 @@ def test_upsample_and_back_projection():
     up = upsample_nearest(labels, 2.0, (5, 3))  # odd input size: the last row/column repeats
     assert up.tolist() == [[1, 1, 2, 2, 2], [1, 1, 2, 2, 2], [3, 3, 4, 4, 4]]
     camera = Pinhole(pixel_pitch_mm=0.004, sensor_distance_mm=52.63, width_px=101, height_px=51)
-    point = camera.back_project(np.array([100.0]), np.array([0.0]), np.array([1000.0]))[0]
-    # 50 px right of the centre at 4 um: 0.2 mm on the sensor, times Z / d_ls
+    point = camera.back_project_mm(np.array([100.0]), np.array([0.0]), np.array([1000.0]))[0]
+    # 50 px right of the centre at 4 um: 0.2 mm on the sensor, times Z / d_ls (optical frame: y down)
     assert point == pytest.approx([0.2 * 1000 / 52.63, -0.1 * 1000 / 52.63, 1000.0])
+    # the files' frame: metres, y up, looking down -z; and back again to the same pixel
+    scene = camera.back_project_scene_m(np.array([100.0]), np.array([0.0]), np.array([1000.0]))[0]
+    assert scene == pytest.approx([0.2 / 52.63, 0.1 / 52.63, -1.0])
+    u, v = camera.project_scene_m(scene)
+    assert (u, v) == pytest.approx((100.0, 0.0))
+    np.testing.assert_allclose(camera.K, [[52.63 / 0.004, 0, 50], [0, 52.63 / 0.004, 25], [0, 0, 1]])
     depth = np.full((40, 60), 1000.0, np.float32)
     depth[:5] = np.nan
     colours = np.zeros((40, 60, 3), np.uint8)
     points, rgb = scene_points(depth, colours, 1.0, Pinhole(0.004, 52.63, 60, 40), max_points=500)
     assert 0 < len(points) <= 500 and len(rgb) == len(points)
-    assert np.all(points[:, 2] == 1000.0)
+    assert np.allclose(points[:, 2], -1.0)

@@ -18,6 +18,7 @@ from mca.capture.cli import app
 from mca.capture.cr2 import Cr2Metadata, write_cr2
 from mca.capture.pipeline_app import RESULT_NAME, process_file
 from mca.capture.profiles import load_profile
+from mca.processing.optics import MCAOptics
 from mca.processing.result import DepthResult, MultiPlaneImage, Region
 
 FULL_SET = {
@@ -175,21 +176,25 @@ def test_process_file_writes_the_full_set(tmp_path, profile, maker, size):
     assert result["layers_order"] == "front-to-back" and by_id[1]["layer"] == "layers/00.png"
     nearest = cv2.imread(str(folder / "layers" / "00.png"), cv2.IMREAD_UNCHANGED)
     assert nearest.shape[2] == 4 and nearest[0, 0, 3] == 255 and nearest[0, -1, 3] == 0
-    # every point of the cloud lies at one of the two region distances, in front of the camera
-    vertices, _ = outputs.read_ply(folder / "scene.ply")
-    assert len(vertices) > 0
+    # every point of the cloud lies at one of the two region distances, in front of the camera: the scene
+    # frame is glTF's (metres, y up, the camera looking down -z)
+    vertices, comments = outputs.read_ply(folder / "scene.ply")
+    assert len(vertices) > 0 and any("y up" in c and "metres" in c for c in comments)
     assert np.allclose(
-        np.sort(np.unique(np.round(vertices["z"], 2))),
+        np.sort(np.unique(np.round(-vertices["z"] * 1000, 2))),
         np.round([by_id[1]["distance_mm"], by_id[2]["distance_mm"]], 2),
         atol=0.01,
     )
     gltf, binary = outputs.read_glb(folder / "scene.glb")
     assert len(gltf["meshes"]) == 2
-    z = [
-        float(outputs.glb_accessor(gltf, binary, m["primitives"][0]["attributes"]["POSITION"])[0, 2])
-        for m in gltf["meshes"]
-    ]
-    assert z == pytest.approx([by_id[1]["distance_mm"], by_id[2]["distance_mm"]], rel=1e-6)
+    corners = [outputs.glb_accessor(gltf, binary, m["primitives"][0]["attributes"]["POSITION"]) for m in gltf["meshes"]]
+    assert -corners[0][:, 2] * 1000 == pytest.approx([by_id[1]["distance_mm"]] * 4, rel=1e-6)
+    # region 2 is slanted (disparity 0.001 x + c): its quad's corners lie on that plane, not at one depth
+    optics = MCAOptics.from_profile(profile, pixel_pitch_mm=result["pixel_pitch_mm"])
+    u = np.array([width // 2, width, width, width // 2]) - 0.5  # the box's pixel edges
+    expected = optics.distance_mm(0.001 * u + by_id[2]["disparity_px"])
+    assert -corners[1][:, 2] * 1000 == pytest.approx(expected, rel=1e-5)
+    assert corners[1][1, 2] < corners[1][0, 2]  # farther to the right
 
 
 def test_process_file_disparity_only(tmp_path, profile):
@@ -330,7 +335,8 @@ def test_scene_quads_fall_back_to_region_masks(tmp_path, profile):
     outcome = process_file(make_png(tmp_path / "a.png"), tmp_path / "out", profile, pipeline=_pipeline_without_layers)
     assert outcome.status == "done", outcome.reason
     gltf, binary = outputs.read_glb(tmp_path / "out" / "a" / "scene.glb")
-    assert [n["extras"]["region_id"] for n in gltf["nodes"][1:]] == [1, 2]
+    assert [n["extras"]["region_id"] for n in gltf["nodes"][1:] if "mesh" in n] == [1, 2]
+    assert [n["name"] for n in gltf["nodes"] if "camera" in n] == ["camera"]
     texture = cv2.imdecode(np.frombuffer(outputs.glb_image(gltf, binary, 0), np.uint8), cv2.IMREAD_UNCHANGED)
     assert texture.shape == (48, 32, 4) and (texture[..., 3] == 255).all()
     corners = outputs.glb_accessor(gltf, binary, 0)
@@ -344,6 +350,7 @@ sys.path.insert(0, sys.argv[3])
 from pathlib import Path
 from mca.capture.batch import run_batch
 from mca.capture.profiles import load_profile
+from mca.processing.optics import MCAOptics
 from test_process import fake_pipeline
 
 def slow_pipeline(*args, **kwargs):

@@ -61,7 +61,7 @@ def test_targets_outside_travel_are_refused_before_sending(rail: GrblRail, sim: 
 
 
 def test_moving_while_locked_names_the_remedy(rail: GrblRail) -> None:
-    with pytest.raises(RailCommandError, match="error:9.*mca rail home") as caught:
+    with pytest.raises(RailCommandError, match=r"error:9.*mca rail home") as caught:
         rail.move_to(10.0)
     assert caught.value.error_code == 9
 

@@ -21,7 +21,7 @@ def lines(data: bytes) -> list[str]:
 
 
 def status(sim: SimGrbl) -> gp.StatusReport:
-    (line,) = [l for l in lines(sim.receive(b"?")) if l.startswith("<")]
+    (line,) = [entry for entry in lines(sim.receive(b"?")) if entry.startswith("<")]
     return gp.parse_status(line)
 
 

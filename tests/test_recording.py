@@ -16,6 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import rerun as rr
 
 from mca.capture.profiles import load_profile
 from mca.capture.recording import (
@@ -301,12 +302,14 @@ def test_points_and_planes_sit_at_the_region_distances(recordings) -> None:
     columns = read_columns(path)
     points = np.array(columns["/world/points"]["Points3D:positions"][0])
     assert points.ndim == 2 and points.shape[1] == 3 and 0 < len(points) <= 200_000
+    # the scene frame of scene.ply and scene.glb: metres, y up, the camera looking down -z
+    assert one(columns, "/world", "ViewCoordinates:xyz") == list(rr.ViewCoordinates.RUB.as_arrow_array()[0].as_py())
     distances_m = sorted(r.distance_mm / 1000 for r in result.regions)
-    assert points[:, 2].min() == pytest.approx(distances_m[0], rel=1e-4)
-    assert points[:, 2].max() == pytest.approx(distances_m[-1], rel=1e-4)
+    assert -points[:, 2].max() == pytest.approx(distances_m[0], rel=1e-4)
+    assert -points[:, 2].min() == pytest.approx(distances_m[-1], rel=1e-4)
     nearest = min(result.regions, key=lambda r: r.order)
     plane = np.array(columns["/world/planes/00"]["Mesh3D:vertex_positions"][0])
-    assert np.allclose(plane[:, 2], nearest.distance_mm / 1000, rtol=1e-5)
+    assert np.allclose(-plane[:, 2], nearest.distance_mm / 1000, rtol=1e-5)
 
 
 def test_timings_are_scalars_per_stage_and_the_order_table_lists_regions_front_to_back(recordings) -> None:
@@ -347,17 +350,25 @@ def test_two_recorders_coexist_and_merge(tmp_path: Path) -> None:
 
 
 def test_plane_mesh_covers_only_the_opaque_part() -> None:
+    from mca.processing.pinhole import PinholeCamera
+
     rgba = np.zeros((40, 80, 4), np.float32)
     rgba[:20, :40] = (0.5, 0.5, 0.5, 1.0)
+    camera = PinholeCamera(100.0, 81, 41)  # principal point (40, 20): pixel edges -0.5 .. 79.5
     vertices, triangles, colours = plane_mesh(
-        rgba, 2.0, focal_px=100.0, centre_px=(40.0, 20.0), pixel_scale=1.0, cells_across=8
+        rgba, lambda u, v: np.full(np.shape(u), 2000.0), camera, pixel_scale=1.0, cells_across=8
     )
     used = vertices[np.unique(triangles)]
-    assert np.allclose(used[:, 2], 2.0)
-    assert used[:, 0].min() == pytest.approx(-40 * 2.0 / 100) and used[:, 0].max() == pytest.approx(0.0)
-    assert used[:, 1].min() == pytest.approx(-20 * 2.0 / 100) and used[:, 1].max() == pytest.approx(0.0)
+    assert np.allclose(used[:, 2], -2.0)  # 2 m in front of the camera, which looks down -z
+    assert used[:, 0].min() == pytest.approx(-40.5 * 2.0 / 100) and used[:, 0].max() == pytest.approx(-0.5 * 0.02)
+    assert used[:, 1].max() == pytest.approx(20.5 * 2.0 / 100) and used[:, 1].min() == pytest.approx(0.5 * 0.02)
     assert len(triangles) == 2 * 2 * 4  # a quarter of the 8 x 4 cells (10 px each), two triangles each
     assert colours.shape == (len(vertices), 4)
+    # a slanted surface: each vertex at its own distance, all of them on one 3D plane
+    slanted, _, _ = plane_mesh(rgba, lambda u, v: 1000.0 / (1.0 - 0.001 * u), camera, pixel_scale=1.0, cells_across=8)
+    centred = slanted - slanted.mean(axis=0)
+    assert np.linalg.svd(centred, compute_uv=False)[-1] < 1e-5 * np.linalg.norm(centred)
+    assert np.ptp(slanted[:, 2]) > 0.01
 
 
 def _free_port() -> int:

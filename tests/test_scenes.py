@@ -70,12 +70,17 @@ def test_mca_simulate_writes_the_files(tmp_path) -> None:
     result = CliRunner().invoke(app, ["simulate", "--scene", "paper-g", "--out", str(tmp_path), "--size", "small"])
     assert result.exit_code == 0, result.output
     assert "[1/1] paper-g" in result.output
-    for suffix in (".CR2", ".truth.json", ".depth.tiff", ".labels.png"):
-        assert (tmp_path / f"paper-g{suffix}").is_file()
-    truth = json.loads((tmp_path / "paper-g.truth.json").read_text())
+    # the photograph alone in the folder, its truth in truth/ (where `mca process DIR` does not look)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["paper-g.CR2", "truth"]
+    for suffix in (".truth.json", ".depth.tiff", ".labels.png"):
+        assert (tmp_path / "truth" / f"paper-g{suffix}").is_file()
+    from mca.capture.batch import discover_inputs
+
+    assert discover_inputs([tmp_path]) == [tmp_path / "paper-g.CR2"]
+    truth = json.loads((tmp_path / "truth" / "paper-g.truth.json").read_text())
     assert truth["focus_distance_mm"] == pytest.approx(1000.5703, abs=1e-3)
     knife = next(o for o in truth["objects"] if o["slant"])
     assert knife["slant"]["axis"] == "x"
-    assert not list(tmp_path.glob(".*"))  # no temporary files left
+    assert not list(tmp_path.glob(".*")) and not list((tmp_path / "truth").glob(".*"))  # no temporary files left
     bad = CliRunner().invoke(app, ["simulate", "--scene", "paper-z", "--out", str(tmp_path)])
     assert bad.exit_code == 2 and "unknown scene" in bad.output

@@ -6,8 +6,8 @@ import io
 
 import pytest
 
-from mca.devices.ptp.camera import Camera, DeviceBusyError
-from mca.devices.ptp.codes import Op
+from mca.devices.ptp.camera import Camera, ReleaseRefused
+from mca.devices.ptp.codes import Op, Resp
 from mca.devices.ptp.transport_ptpip import PtpIpTransport
 from mca.devices.ptp.transport_usb import UsbTransport, find_cameras
 from mca.devices.sim_eos70d.faults import FaultPlan
@@ -50,8 +50,9 @@ def test_ram_capture_fills_the_buffer_until_downloaded() -> None:
         cam.set_property("capturetarget", "ram")
         obj = cam.capture(timeout_s=5)
         assert obj.in_ram
-        with pytest.raises(DeviceBusyError):
+        with pytest.raises(ReleaseRefused) as refused:
             cam.capture(timeout_s=1)
+        assert refused.value.code == Resp.DEVICE_BUSY and backend.camera.exposures == 1
         buf = io.BytesIO()
         cam.download(obj.handle, obj.size_bytes, buf)
         cam.transfer_complete(obj.handle)
@@ -114,3 +115,37 @@ def test_ptpip_capture_and_download() -> None:
 def test_ptpip_server_refuses_non_loopback_addresses() -> None:
     with pytest.raises(ValueError):
         PtpIpServer(host="0.0.0.0", port=0)
+
+
+# -- the 70D's other answers ---------------------------------------------------------------------------------------
+
+
+def test_the_eos_folder_listing_and_standard_property_descriptions() -> None:
+    from mca.devices.ptp.datasets import parse_eos_folder_entries
+    from mca.devices.sim_eos70d.responder import SimBehaviour
+
+    backend = SimUsbBackend(SimEos70D(behaviour=SimBehaviour(files_on_card=4)))
+    with _open(backend) as cam:
+        root = parse_eos_folder_entries(cam._data(Op.EOS_GET_OBJECT_INFO_EX, (0x20001, 0xFFFFFFFF, 0x100000)))
+        assert [e.filename for e in root] == ["DCIM"]
+        dcim = parse_eos_folder_entries(cam._data(Op.EOS_GET_OBJECT_INFO_EX, (0x20001, root[0].handle, 0x100000)))
+        assert sorted(e.filename for e in dcim) == ["100CANON", "101CANON"]
+        files = [info.filename for _h, info in cam.files()]
+        assert len(files) == 4 and all(f.endswith(".JPG") for f in files)
+        battery = cam.prop_desc(0x5001)
+        assert (battery.current, battery.allowed) == (75, (100, 75, 50, 25, 0))
+        assert cam.prop_desc(0xD402).current == "Canon EOS 70D"
+
+
+def test_live_view_frames_come_only_while_the_output_goes_to_the_computer() -> None:
+    from mca.devices.ptp.codes import Resp as R
+
+    backend = SimUsbBackend(SimEos70D(live_view_source=lambda i: b"\xff\xd8frame%d" % i))
+    with _open(backend) as cam:
+        resp = cam._call(Op.EOS_GET_VIEWFINDER_DATA, (0x00200000, 0, 0), check=False)
+        assert resp.code == R.CANON_OBJECT_NOT_READY  # live view is off
+        cam.start_live_view()
+        assert backend.camera.value(0xD1B0) == 2
+        assert cam.live_view_frame() == b"\xff\xd8frame1" and cam.live_view_frame() == b"\xff\xd8frame2"
+        cam.stop_live_view()
+        assert backend.camera.value(0xD1B0) == 0

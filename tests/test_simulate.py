@@ -195,6 +195,8 @@ def test_cr2_round_trip_returns_the_planes(tmp_path) -> None:
     np.testing.assert_allclose(frame.planes, np.clip(expected, 0, 1), atol=1e-6)
     # And the noise-free planes are what the noisy ones scatter around.
     assert abs(float((frame.planes - capture.planes_linear).mean())) < 1e-3
+    assert {paths[k].parent for k in ("truth", "depth", "labels")} == {tmp_path / "truth"}  # beside, not among
+    assert paths["cr2"].parent == tmp_path
     truth = json.loads(paths["truth"].read_text())
     assert truth["scene"] == "paper-f" and truth["profile"] == "paper-70d"
     import cv2

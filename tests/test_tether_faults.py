@@ -1,4 +1,5 @@
-"""The tethering session under faults: every captured shot ends on disk byte-identical with a correct catalog."""
+"""The tethering session under every named fault scenario of the simulated 70D: one exposure per requested shot,
+every exposure's file on disk byte-identical with a consistent catalog, nothing half-written, no button left down."""
 
 from __future__ import annotations
 
@@ -10,34 +11,75 @@ import pytest
 
 from mca.capture.tether import TetherSession, camera_factory, make_sim_rig, sanitize_filename
 from mca.devices.ptp.codes import Op
-from mca.devices.sim_eos70d.faults import FaultPlan
+from mca.devices.sim_eos70d.faults import SCENARIOS, FaultPlan, scenario
 from mca.devices.sim_eos70d.responder import default_frame_source
 
+#: Shots per scenario (the slow half press takes 6 s a shot).
+SHOTS = {"slow-half-press": 1}
 
-def _run(
-    tmp_path: Path, faults: FaultPlan, count: int = 3, frame_source=default_frame_source
-) -> tuple[TetherSession, object]:
+
+def _run(tmp_path: Path, faults: FaultPlan, count: int = 3, frame_source=default_frame_source, timeout_s: float = 0.3):
     rig = make_sim_rig(frame_source, faults=faults)
-    session = TetherSession(camera_factory("sim", rig=rig, timeout_s=0.3), tmp_path)
+    session = TetherSession(camera_factory("sim", rig=rig, timeout_s=timeout_s), tmp_path)
     session.connect()
     results = session.capture(count)
     assert [r.status for r in results] == ["downloaded"] * count
     return session, rig
 
 
-def _check(session: TetherSession, rig, tmp_path: Path, count: int = 3) -> None:
+def _check_card_against_disk(session: TetherSession, rig, out: Path, count: int) -> None:
     rows = session.catalog.rows()
     card = rig.camera.card_files()
     assert len(rows) == count
     for row in rows:
-        data = (tmp_path / row.file_name).read_bytes()
+        data = (out / row.file_name).read_bytes()
         assert data == card[row.camera_filename]
         assert row.status == "downloaded" and row.size_bytes == len(data)
         assert row.sha256 == hashlib.sha256(data).hexdigest()
         assert row.camera_serial == "SIM70D0000001" and row.downloaded_at >= row.captured_at
-    assert not list(tmp_path.glob(".*.part"))
-    assert len(card) == count  # nothing deleted from the card by default
+    assert not list(out.glob(".*.part"))
+
+
+@pytest.mark.parametrize("name", sorted(SCENARIOS))
+def test_every_fault_scenario_gives_one_exposure_per_requested_shot_and_loses_nothing(
+    tmp_path: Path, name: str
+) -> None:
+    chosen = scenario(name)
+    shots = SHOTS.get(name, 3)
+    rig = make_sim_rig(default_frame_source, scenario=name)
+    sim = rig.camera
+    session = TetherSession(camera_factory("sim", rig=rig, timeout_s=chosen.host_timeout_s), tmp_path)
+    session.connect()
+    results = session.capture(shots)
+    sim.wait_idle()
     session.close()
+    presses_expected = 0 if name == "af-fail" else shots  # One-Shot AF without focus: refused before the full press
+    assert sim.full_presses == presses_expected  # never a second release for one requested shot
+    assert not sim.half_pressed  # no button left down
+    assert not list(tmp_path.glob(".*.part"))
+    if chosen.shots_succeed:
+        assert sim.exposures == shots
+        assert [r.status for r in results] == ["downloaded"] * shots
+        card = sim.card_files()
+        made = {f"IMG_{i:04d}.CR2" for i in range(1, shots + 1)}
+        assert made <= set(card)
+        for r in results:
+            assert r.path is not None and r.path.read_bytes() == card[r.path.name]
+        rows = [row for row in _rows(tmp_path)]
+        assert sorted(row[0] for row in rows) == sorted(made) and all(row[1] == "downloaded" for row in rows)
+    else:
+        assert sim.exposures == 0 and [r.status for r in results] == ["refused"] * shots
+        assert all("no picture was taken" in r.message for r in results)
+
+
+def _rows(out: Path) -> list[tuple[str, str]]:
+    import sqlite3
+
+    db = sqlite3.connect(out / "catalog.sqlite")
+    try:
+        return db.execute("SELECT camera_filename, status FROM shots ORDER BY id").fetchall()
+    finally:
+        db.close()
 
 
 @pytest.mark.parametrize(
@@ -53,13 +95,16 @@ def _check(session: TetherSession, rig, tmp_path: Path, count: int = 3) -> None:
 )
 def test_faults_end_with_every_shot_on_disk(tmp_path: Path, faults: FaultPlan) -> None:
     session, rig = _run(tmp_path, faults)
-    _check(session, rig, tmp_path)
+    _check_card_against_disk(session, rig, tmp_path, 3)
+    assert rig.camera.exposures == 3
+    session.close()
 
 
 def test_disconnect_reconnects_and_fetches_missing(tmp_path: Path) -> None:
     session, rig = _run(tmp_path, FaultPlan(disconnect_after_in_bytes=10_000))
     assert session.reconnects >= 1 and rig.backend.device_id.address == 5  # re-enumerated at a new address
-    _check(session, rig, tmp_path)
+    _check_card_against_disk(session, rig, tmp_path, 3)
+    session.close()
 
 
 def test_delete_after_verify_empties_the_card(tmp_path: Path) -> None:

@@ -3,13 +3,18 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import NoReturn
 
 import typer
 
 
 def calibrate(
-    camera: str = typer.Option("auto", "--camera", "-c", help="auto, sim, usb:BUS:ADDR or ptpip:HOST:PORT"),
-    rail: str = typer.Option(..., "--rail", envvar="MCA_RAIL", help="serial port of the GRBL rail, or sim"),
+    camera: str | None = typer.Option(
+        None, "--camera", "-c", help="auto, sim, usb:BUS:ADDR or ptpip:HOST:PORT (default: config, auto)"
+    ),
+    rail: str | None = typer.Option(
+        None, "--rail", envvar="MCA_RAIL", help="serial port of the GRBL rail, or sim (default: config, sim)"
+    ),
     from_mm: float = typer.Option(
         -100.0,
         "--from",
@@ -17,7 +22,9 @@ def calibrate(
     ),
     to_mm: float = typer.Option(150.0, "--to", help="last sweep position, mm"),
     step_mm: float = typer.Option(10.0, "--step", help="sweep step, mm"),
-    profile_name: str = typer.Option("paper-70d", "--profile", help="nominal profile: built-in name or TOML"),
+    profile_name: str | None = typer.Option(
+        None, "--profile", help="nominal profile: built-in name or TOML (default: config, paper-70d)"
+    ),
     out: Path = typer.Option(..., "--out", "-o", help="calibrated profile TOML to write (plot beside it as .png)"),
     shots_dir: Path | None = typer.Option(
         None, "--dir", help="shots and catalog.sqlite; default OUT stem + '-sweep'. Rerun with the same to resume"
@@ -37,8 +44,11 @@ def calibrate(
     ),
     sim_scale: float = typer.Option(0.25, "--sim-scale", help="simulated render size (fraction of the profile's)"),
     record: Path | None = typer.Option(None, "--record", help="also log the fit into a rerun FILE.rrd"),
+    as_json: bool = typer.Option(False, "--json", help="print the fit as one JSON object (progress on stderr)"),
 ) -> None:
     """Calibrate an MCA lens on the bench: the fitted profile's depths match the rail's known distances."""
+    import json
+
     import cv2
 
     from mca.capture import calibration as cal
@@ -48,9 +58,20 @@ def calibrate(
     from mca.processing.calibration import CalibrationFitError, fit_lens, plot_fit
     from mca.processing.camera import ProfileError, profile_from_mapping
 
-    def fail(message: str, code: int = 1) -> None:
+    def fail(message: str, code: int = 1) -> NoReturn:
         typer.echo(f"error: {message}", err=True)
         raise typer.Exit(code)
+
+    def say(text: str) -> None:  # the report: on stdout, or on stderr when stdout carries the JSON
+        typer.echo(text, err=as_json)
+
+    from mca.capture.config import ConfigError, fill_from_config
+
+    try:
+        chosen = fill_from_config(camera=camera, rail=rail, profile=profile_name)
+    except ConfigError as exc:
+        fail(str(exc), 2)
+    camera, rail, profile_name = str(chosen["camera"]), str(chosen["rail"]), str(chosen["profile"])
 
     try:
         profile = load_profile(profile_name)
@@ -74,7 +95,7 @@ def calibrate(
             factory = camera_factory(camera)
         except ValueError as exc:
             fail(str(exc), 2)
-    typer.echo(
+    say(
         f"sweep {from_mm:+.1f} .. {to_mm:+.1f} mm step {step_mm} mm: {len(plan.positions_mm)} positions, "
         f"target at {at_zero:.1f} mm from the lens with the rail at 0; shots in {directory}"
     )
@@ -115,7 +136,7 @@ def calibrate(
     cv2.imwrite(str(plot_path), plot)
 
     f, s = fit.fitted, fit.sigma
-    typer.echo(
+    say(
         f"fit over {len(points)} positions ({len(outcome.shot_positions_mm)} shot now): residual rms "
         f"{fit.residual_rms_px:.4f} px, max depth error {fit.max_depth_error_mm:.3f} mm"
     )
@@ -150,22 +171,40 @@ def calibrate(
         ),
     ]
     header = f"{'':28s}{'nominal':>12s}{'fitted':>12s}{'sigma':>10s}"
-    typer.echo(header + (f"{'sim truth':>12s}{'error':>9s}" if bench else ""))
+    say(header + (f"{'sim truth':>12s}{'error':>9s}" if bench else ""))
     for label, nom, value, sigma, truth in rows:
         line = f"{label:28s}{nom:12.4f}{value:12.4f}{(f'{sigma:.2g}' if sigma is not None else '-'):>10s}"
         if truth is not None:
             error = f"{(value - truth) / truth * 100:+.3f}%" if "px" not in label else f"{value - truth:+.3f}px"
             line += f"{truth:12.4f}{error:>9s}"
-        typer.echo(line)
+        say(line)
+    model_error = None
     if bench is not None:
         import numpy as np
 
         grid = np.linspace(min(p.distance_mm for p in points), max(p.distance_mm for p in points), 101)
-        model_error = np.abs(np.asarray(f.distance_mm(bench.truth.disparity_px(grid))) - grid).max()
-        typer.echo(
-            f"depth error of the fitted profile against the simulated lens over the sweep: {model_error:.3f} mm max"
-        )
-    typer.echo(f"wrote {out} and {plot_path}")
+        model_error = float(np.abs(np.asarray(f.distance_mm(bench.truth.disparity_px(grid))) - grid).max())
+        say(f"depth error of the fitted profile against the simulated lens over the sweep: {model_error:.3f} mm max")
+    say(f"wrote {out} and {plot_path}")
+    if as_json:
+        names = ("filter_centre_distance_mm", "sensor_distance_mm", "focus_distance_mm", "disparity_offset_px")
+        document = {
+            "profile": str(out),
+            "plot": str(plot_path),
+            "shots_dir": str(directory),
+            "positions": len(points),
+            "shot_now": len(outcome.shot_positions_mm),
+            "residual_rms_px": fit.residual_rms_px,
+            "max_depth_error_mm": fit.max_depth_error_mm,
+            "parameters": {
+                name: {"nominal": row[1], "fitted": row[2], "sigma": row[3], "sim_truth": row[4]}
+                for name, row in zip(names, rows)
+            },
+            "sim_model_error_mm": model_error,
+        }
+        from mca.capture.outputs import json_safe
+
+        typer.echo(json.dumps(json_safe(document), indent=2))
 
     if record is not None:
         try:
@@ -185,7 +224,7 @@ def calibrate(
                 residuals_px=fit.residuals_px,
                 profile=text,
             )
-        typer.echo(f"recorded in {record}")
+        say(f"recorded in {record}")
 
 
 def register(app: typer.Typer) -> None:

@@ -1,28 +1,33 @@
-"""`mca camera ...`: list cameras, show one's info, get/set its properties, and serve the simulated EOS 70D."""
+"""`mca camera ...`: list cameras, show one's info, get/set its properties, check it (doctor), serve the simulated EOS 70D."""
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Any
+
 import typer
 
-camera_app = typer.Typer(help="Tethered camera: list, info, config, and the simulated EOS 70D.", no_args_is_help=True)
+camera_app = typer.Typer(
+    help="Tethered camera: list, info, config, doctor, and the simulated EOS 70D.", no_args_is_help=True
+)
 
-CAMERA_OPTION = typer.Option("auto", "--camera", "-c", help="auto, sim, usb:BUS:ADDR or ptpip:HOST:PORT")
-
-
-def _message(exc: Exception) -> str:
-    """The text of an error: a KeyError's own message, not its quoted repr."""
-    return str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
+CAMERA_OPTION = typer.Option("auto", "--camera", "-c", help="auto, sim, sim:SCENARIO, usb:BUS:ADDR or ptpip:HOST:PORT")
 
 
 def _open(spec: str):
     from mca.capture.tether import camera_factory
+    from mca.devices.ptp.camera import PropertyNotReported, PtpError
+    from mca.devices.ptp.codec import ProtocolError
     from mca.devices.ptp.transport import TransportError
 
     try:
         return camera_factory(spec)()
-    except (TransportError, ValueError) as exc:
+    except ValueError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
+    except (TransportError, ProtocolError, PtpError, PropertyNotReported) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(1) from exc
 
 
 @camera_app.command("list")
@@ -31,9 +36,9 @@ def list_cameras(sim: bool = typer.Option(False, "--sim", help="also list the si
     from mca.devices.ptp.transport import TransportError
     from mca.devices.ptp.transport_usb import find_cameras
 
-    found = []
+    found: list[Any] = []
     try:
-        found = find_cameras()
+        found = list(find_cameras())
     except TransportError as exc:
         typer.echo(f"warning: {exc}", err=True)
     if sim:
@@ -42,7 +47,7 @@ def list_cameras(sim: bool = typer.Option(False, "--sim", help="also list the si
         found += [
             dict(port="sim", manufacturer=c.manufacturer, product=c.product, serial_number=c.serial_number)
             for c in find_cameras(make_sim_rig().backend)
-        ]  # type: ignore[misc]
+        ]
     if not found:
         typer.echo("no PTP camera found (switch it on and connect it; `--camera sim` uses the simulated one)")
         return
@@ -58,6 +63,10 @@ def list_cameras(sim: bool = typer.Option(False, "--sim", help="also list the si
 @camera_app.command("info")
 def info(camera: str = CAMERA_OPTION) -> None:
     """Model, firmware, serial number, storages and capture method."""
+    from mca.devices.ptp.camera import PtpError
+    from mca.devices.ptp.codec import ProtocolError
+    from mca.devices.ptp.transport import TransportError
+
     cam = _open(camera)
     try:
         i = cam.info
@@ -71,6 +80,9 @@ def info(camera: str = CAMERA_OPTION) -> None:
                 f"storage 0x{sid:08X}: {s.description} {s.volume_label} "
                 f"{s.free_space_bytes / 1e9:.1f} of {s.max_capacity_bytes / 1e9:.1f} GB free"
             )
+    except (TransportError, ProtocolError, PtpError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(1) from exc
     finally:
         cam.close()
 
@@ -83,7 +95,10 @@ def config(
     camera: str = CAMERA_OPTION,
 ) -> None:
     """Show or change camera properties by human name."""
-    from mca.devices.ptp.properties import PROPERTIES
+    from mca.devices.ptp.camera import PropertyNotReported, PtpError
+    from mca.devices.ptp.codec import ProtocolError
+    from mca.devices.ptp.properties import PROPERTIES, UnknownPropertyName
+    from mca.devices.ptp.transport import TransportError
 
     if action not in (None, "get", "set") or (action and not name) or (action == "set" and value is None):
         typer.echo("usage: mca camera config [get NAME | set NAME VALUE]", err=True)
@@ -92,43 +107,86 @@ def config(
     try:
         if action == "set":
             try:
-                pv = cam.set_property(name, value)  # type: ignore[arg-type]
-            except (KeyError, ValueError) as exc:
-                typer.echo(f"error: {_message(exc)}", err=True)
+                pv = cam.set_property(str(name), str(value))
+            except (UnknownPropertyName, PropertyNotReported, ValueError, PtpError) as exc:
+                typer.echo(f"error: {exc}", err=True)
                 raise typer.Exit(2) from exc
             typer.echo(f"{pv.name} = {pv.value}")
             return
         names = [name] if name else list(PROPERTIES)
         for n in names:
             try:
-                pv = cam.get_property(n)  # type: ignore[arg-type]
-            except KeyError as exc:
+                pv = cam.get_property(n)
+            except (UnknownPropertyName, PropertyNotReported) as exc:
                 if name:
-                    typer.echo(f"error: {_message(exc)}", err=True)
+                    typer.echo(f"error: {exc}", err=True)
                     raise typer.Exit(2) from exc
                 continue
             typer.echo(f"{pv.name} = {pv.value}")
             if pv.allowed:
                 typer.echo(f"  allowed: {', '.join(pv.allowed)}")
+    except (TransportError, ProtocolError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(1) from exc
     finally:
         cam.close()
+
+
+@camera_app.command("doctor")
+def doctor(
+    camera: str = CAMERA_OPTION,
+    report: Path | None = typer.Option(
+        None, "--report", help="where to write the report (default: ./mca-doctor-SERIAL-TIME.txt)"
+    ),
+    live_view: bool = typer.Option(False, "--live-view", help="also fetch one live-view frame"),
+) -> None:
+    """Check a camera: what it reports on the wire, what this stack will use, and anything unexpected.
+
+    The report is printed and written to a file you can attach to a bug report.
+    """
+    from mca.capture.doctor import diagnose, write_report
+    from mca.devices.ptp.camera import PtpError
+    from mca.devices.ptp.codec import ProtocolError
+    from mca.devices.ptp.transport import TransportError
+
+    cam = _open(camera)
+    try:
+        usb = getattr(cam.transport, "info", None)
+        ids = (usb.vendor_id, usb.product_id) if usb is not None else None
+        result = diagnose(cam, usb_ids=ids, live_view=live_view)
+    except (TransportError, ProtocolError, PtpError) as exc:
+        typer.echo(f"error: the camera stopped answering during the check: {exc}", err=True)
+        raise typer.Exit(1) from exc
+    finally:
+        cam.close()
+    typer.echo(result.text(), nl=False)
+    try:
+        path = write_report(result, report)
+    except OSError as exc:
+        typer.echo(f"error: cannot write the report: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    typer.echo(f"report written to {path}", err=True)
 
 
 @camera_app.command("serve-sim")
 def serve_sim(
     ptpip: str = typer.Option("127.0.0.1:15740", "--ptpip", help="loopback HOST:PORT to listen on"),
     serial: str = typer.Option("SIM70D0000001", help="serial number the simulated camera reports"),
+    scenario: str = typer.Option("none", "--scenario", help="a fault scenario of the simulated body"),
 ) -> None:
     """Serve the simulated EOS 70D over PTP/IP (for gphoto2 and other PTP/IP initiators) until Ctrl-C."""
     from mca.capture.tether import default_sim_frame_source
+    from mca.devices.sim_eos70d.faults import scenario as named_scenario
     from mca.devices.sim_eos70d.ptpip_server import PtpIpServer, parse_address
     from mca.devices.sim_eos70d.responder import SimEos70D
 
-    host, port = parse_address(ptpip)
     try:
-        server = PtpIpServer(SimEos70D(default_sim_frame_source(), serial_number=serial), host, port)
+        chosen = named_scenario(scenario)
+        host, port = parse_address(ptpip)
+        sim = SimEos70D(default_sim_frame_source(), serial_number=serial, behaviour=chosen.behaviour)
+        server = PtpIpServer(sim, host, port, faults=chosen.faults)
     except (OSError, ValueError) as exc:
-        typer.echo(f"error: cannot listen on {ptpip}: {exc}", err=True)
+        typer.echo(f"error: cannot serve the simulated camera on {ptpip}: {exc}", err=True)
         raise typer.Exit(2) from exc
     typer.echo(
         f"simulated Canon EOS 70D on ptpip:{server.address} (gphoto2 --port ptpip:{server.host}"

@@ -38,23 +38,39 @@ def register(app: typer.Typer) -> None:
     def demo(
         out: Path = typer.Option(Path("demo-out"), "--out", "-o", help="Folder for shots, results and the recording."),
         count: int = typer.Option(3, "--count", "-n", min=1, max=50, help="Number of shots."),
-        camera: str = typer.Option(
-            "sim",
+        camera: str | None = typer.Option(
+            None,
             "--camera",
             "-c",
             help="sim (simulated EOS 70D), auto (a USB camera if one is found, else sim), "
-            "usb:BUS:ADDR or ptpip:HOST:PORT.",
+            "usb:BUS:ADDR or ptpip:HOST:PORT (default: the config file's camera, else auto).",
         ),
         size: str = typer.Option("full", "--size", help="Simulated frame size: full (5472x3648), small, or a scale."),
-        profile: str = typer.Option("paper-70d", "--profile", help="Profile used for processing."),
+        profile: str | None = typer.Option(
+            None, "--profile", help="Profile used for processing (default: the config file's, else paper-70d)."
+        ),
     ) -> None:
         """Shoot COUNT frames, process each into accurate-depth layers and record everything for the rerun viewer.
 
         Without a camera on USB this uses the simulated EOS 70D, which photographs the paper's
         Fig. 4 scenes through the MCA lens simulator, so each shot has a known ground truth.
         """
-        from mca.capture.tether import TetherSession, camera_factory, default_sim_frame_source, make_sim_rig
+        from mca.capture.config import ConfigError, fill_from_config
+        from mca.capture.tether import (
+            TetherError,
+            TetherSession,
+            camera_factory,
+            default_sim_frame_source,
+            make_sim_rig,
+        )
         from mca.devices.ptp.transport import TransportError
+
+        try:
+            chosen = fill_from_config(camera=camera, profile=profile)
+        except ConfigError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(2) from None
+        camera, profile = str(chosen["camera"]), str(chosen["profile"])
 
         spec = camera
         if camera == "auto":
@@ -75,20 +91,23 @@ def register(app: typer.Typer) -> None:
             factory = camera_factory(spec)
             typer.echo(f"camera: {spec}", err=True)
 
-        out.mkdir(parents=True, exist_ok=True)
         recording = out / "demo.rrd"
-        session = TetherSession(
-            factory,
-            out / "shots",
-            process=True,
-            profile=profile,
-            record=recording,
-            log=lambda m: typer.echo(f"  {m}", err=True),
-        )
+        try:
+            session = TetherSession(
+                factory,
+                out / "shots",
+                process=True,
+                profile=profile,
+                record=recording,
+                log=lambda m: typer.echo(f"  {m}", err=True),
+            )
+        except TetherError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(2) from exc
         try:
             session.connect()
             results = session.capture(count, 0.0)
-        except TransportError as exc:
+        except (TransportError, TetherError) as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(1) from exc
         finally:

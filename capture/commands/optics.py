@@ -36,7 +36,7 @@ def register(app: typer.Typer) -> None:
             optics_model = MCAOptics.from_profile(load_profile(profile))
         except (ProfileError, ValueError) as exc:
             typer.echo(f"error: {exc}", err=True)
-            raise typer.Exit(2)
+            raise typer.Exit(2) from None
         if disparity_px is not None:
             estimate = optics_model.from_disparity(disparity_px)
         elif inter_image_depth_mm is not None:

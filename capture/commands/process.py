@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import typer
@@ -18,6 +19,28 @@ def resolve_profile(name: str | None):
         base = load_profile(DEFAULT_PROFILE)
         return dataclasses.replace(base, name="none", lens=None, source=f"{base.source} (filter geometry only)")
     return load_profile(name or DEFAULT_PROFILE)
+
+
+def report_document(report) -> dict:
+    """`mca process --json`: every file's outcome, in input order, the totals and the merged recording."""
+    from mca.capture.outputs import json_safe
+
+    files = [
+        {
+            "input": str(o.input_path),
+            "status": o.status,
+            "output_dir": str(o.output_dir),
+            "result": str(o.output_dir / "result.json") if o.status != "failed" else None,
+            "seconds": round(o.seconds, 3),
+            "regions": o.regions,
+            "reason": o.reason,
+        }
+        for o in sorted(report.outcomes, key=lambda o: str(o.input_path))
+    ]
+    totals = {status: report.count(status) for status in ("done", "skipped", "failed")}
+    return json_safe(
+        {"files": files, "totals": totals, "recording": report.recording, "interrupted": report.interrupted}
+    )
 
 
 def stop_on_sigterm() -> None:
@@ -87,6 +110,9 @@ def register(app: typer.Typer) -> None:
             help="Run on a Dask distributed scheduler (shared filesystem).",
         ),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress, only the summary."),
+        as_json: bool = typer.Option(
+            False, "--json", help="Print one JSON object (every file's outcome and totals) instead of the table."
+        ),
         max_megapixels: float | None = typer.Option(
             None,
             "--max-megapixels",
@@ -136,7 +162,8 @@ def register(app: typer.Typer) -> None:
         if record is not None and record.suffix != ".rrd":
             typer.echo(f"error: --record {record}: give a .rrd file name", err=True)
             raise typer.Exit(2)
-        if quiet:
+        progress: SilentProgress | RichProgress | LineProgress
+        if quiet or as_json:
             progress = SilentProgress()
         elif sys.stdout.isatty():
             progress = RichProgress()
@@ -181,7 +208,10 @@ def register(app: typer.Typer) -> None:
             except BatchError as exc:
                 typer.echo(f"error: {exc}", err=True)
                 raise typer.Exit(2) from None
-            print_summary(report)
+            if as_json:
+                typer.echo(json.dumps(report_document(report), indent=2))
+            else:
+                print_summary(report)
             if live is not None and not report.interrupted:
                 import time
 

@@ -56,7 +56,7 @@ def register(app: typer.Typer) -> None:
 
         for name in builtin_names():
             p = load_profile(name)
-            optics = "disparity only" if not p.has_optics else f"focus {p.lens.focus_distance_mm:.1f} mm"
+            optics = "disparity only" if p.lens is None else f"focus {p.lens.focus_distance_mm:.1f} mm"
             typer.echo(f"{name:<12} {p.model:<40} d_a {p.aperture.baseline_mm:6.2f}  {optics}")
 
     @profile_app.command("show")
@@ -68,6 +68,6 @@ def register(app: typer.Typer) -> None:
             typer.echo(_describe(profile))
         except ProfileError as exc:
             typer.echo(f"error: {exc}", err=True)
-            raise typer.Exit(2)
+            raise typer.Exit(2) from None
 
     app.add_typer(profile_app, name="profile")

@@ -7,17 +7,24 @@ import typer
 SIM_SPEEDUP = 20.0  # `--rail sim` moves this many times faster than the real stage would
 
 _RAIL_OPTION = typer.Option(
-    ...,
+    None,
     "--rail",
     envvar="MCA_RAIL",
-    help="Serial port of the GRBL controller (e.g. /dev/ttyUSB0), or 'sim' for the simulated controller.",
+    help="Serial port of the GRBL controller (e.g. /dev/ttyUSB0), or 'sim' for the simulated controller "
+    "(default: the config file's rail, else sim).",
 )
 
 
-def _open(rail_spec: str):  # -> devices.rail.GrblRail; imported lazily to keep `mca --help` fast
+def _open(rail_spec: str | None):  # -> devices.rail.GrblRail; imported lazily to keep `mca --help` fast
+    from mca.capture.config import ConfigError, fill_from_config
     from mca.devices.rail import open_rail
 
-    return open_rail(rail_spec, sim_speedup=SIM_SPEEDUP)
+    try:
+        spec = str(fill_from_config(rail=rail_spec)["rail"])
+    except ConfigError as error:
+        typer.echo(f"error: {error}", err=True)
+        raise typer.Exit(code=2) from None
+    return open_rail(spec, sim_speedup=SIM_SPEEDUP)
 
 
 def _show(status) -> str:
@@ -35,7 +42,7 @@ def register(app: typer.Typer) -> None:
     rail_app = typer.Typer(help="Home, move and query the bench rail (GRBL over serial).", no_args_is_help=True)
 
     @rail_app.command("home")
-    def home(rail: str = _RAIL_OPTION) -> None:
+    def home(rail: str | None = _RAIL_OPTION) -> None:
         """Run the homing cycle ($H); the rail then stands at its home switch, unlocked."""
         from mca.devices.rail import RailError
 
@@ -48,7 +55,7 @@ def register(app: typer.Typer) -> None:
     @rail_app.command("move")
     def move(
         position_mm: float = typer.Argument(..., help="Target in mm from the home switch (0 .. travel)."),
-        rail: str = _RAIL_OPTION,
+        rail: str | None = _RAIL_OPTION,
         feed: float = typer.Option(600.0, "--feed", help="Feed rate in mm/min (capped by the controller's $110)."),
         home_first: bool = typer.Option(False, "--home", help="Home first (a controller fresh from reset is locked)."),
     ) -> None:
@@ -68,7 +75,7 @@ def register(app: typer.Typer) -> None:
             _fail(error)
 
     @rail_app.command("status")
-    def status(rail: str = _RAIL_OPTION) -> None:
+    def status(rail: str | None = _RAIL_OPTION) -> None:
         """Print the controller state, the position and the travel."""
         from mca.devices.rail import RailError
 

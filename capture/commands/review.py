@@ -53,7 +53,8 @@ def _capture_time(document: dict[str, Any]) -> str | None:
 
 def row_from_result(folder: Path, document: dict[str, Any]) -> ReviewRow:
     """The row of one output folder from its parsed result.json."""
-    regions = document.get("regions") if isinstance(document.get("regions"), list) else []
+    listed = document.get("regions")
+    regions: list[Any] = listed if isinstance(listed, list) else []
     distances = [d for d in (_finite(r.get("distance_mm")) for r in regions if isinstance(r, dict)) if d is not None]
     disparities = [d for d in (_finite(r.get("disparity_px")) for r in regions if isinstance(r, dict)) if d is not None]
     row = ReviewRow(

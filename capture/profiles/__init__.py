@@ -23,7 +23,9 @@ def load_profile_file(path: str | Path) -> CameraProfile:
     try:
         text = path.read_bytes().decode("utf-8")
     except FileNotFoundError:
-        raise ProfileError("<file>", "no such file; give a built-in name (mca profile list) or a path", source) from None
+        raise ProfileError(
+            "<file>", "no such file; give a built-in name (mca profile list) or a path", source
+        ) from None
     except IsADirectoryError:
         raise ProfileError("<file>", "is a directory, not a profile TOML file", source) from None
     except UnicodeDecodeError as exc:

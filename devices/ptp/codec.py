@@ -128,6 +128,11 @@ def parse_container(buf: bytes | bytearray | memoryview, max_container_bytes: in
     return Container(header.type, header.code, header.transaction_id, params, b"")
 
 
+def is_older_transaction(got: int, expected: int) -> bool:
+    """Whether transaction id `got` comes before `expected` (ids count up by one and wrap at 2**32)."""
+    return 0 < (expected - got) % 2**32 < 2**31
+
+
 def parse_params(body: bytes | memoryview, limit: int = MAX_PARAMS) -> tuple[int, ...]:
     """u32 parameters from a body whose length must be a multiple of 4."""
     if len(body) % 4 or len(body) // 4 > limit:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass, field
 
 from mca.devices.ptp.codec import (
@@ -16,7 +17,7 @@ from mca.devices.ptp.codec import (
 )
 from mca.devices.ptp.codes import DataType
 
-_SCALAR_FORMATS = {
+_SCALAR_FORMATS: dict[int, str] = {
     DataType.INT8: "b",
     DataType.UINT8: "B",
     DataType.INT16: "h",
@@ -225,8 +226,6 @@ class DevicePropDesc:
 
 
 def _pack_value(datatype: int, value: PropValue) -> bytes:
-    import struct
-
     if datatype == DataType.STR:
         return pack_string(str(value))
     if datatype & _ARRAY_FLAG:
@@ -299,8 +298,100 @@ def parse_prop_desc(buf: bytes | bytearray | memoryview) -> DevicePropDesc:
         count = r.u16()
         if count > r.remaining:  # every value takes at least one byte
             raise ProtocolError(f"enumeration of {count} values does not fit the {r.remaining} bytes left")
+        if datatype in (DataType.INT8, DataType.UINT8) and r.remaining == 2 * count and count:
+            # EOS bodies (60D trace; 70D by libgphoto2's dump) declare BatteryLevel UINT8 but send the
+            # enumeration as u16 words: 64 00 4b 00 32 00 19 00 00 00 is 100, 75, 50, 25, 0.
+            words = struct.unpack_from(f"<{count}H", r.take(2 * count))
+            if all(w <= 0xFF for w in words):
+                return DevicePropDesc(code, datatype, bool(getset), default, current, "enum", allowed=words)
+            r.pos -= 2 * count
         allowed = tuple(_read_value(r, datatype) for _ in range(count))
         return DevicePropDesc(code, datatype, bool(getset), default, current, "enum", allowed=allowed)
     if form_flag != 0:
         raise ProtocolError(f"unknown property form flag {form_flag} for 0x{code:04X}")
     return DevicePropDesc(code, datatype, bool(getset), default, current)
+
+
+@dataclass(frozen=True)
+class EosDeviceInfoEx:
+    """EOS GetDeviceInfoEx (0x9108): the EOS event records and properties the body reports, and a third list.
+
+    Layout: u32 (the dataset size on the bodies seen), then three u32 arrays: event codes, property codes and a
+    list libgphoto2 calls "unk" (0, 1, 2, 4, 8 on the 70D and the 5D Mark III).
+    """
+
+    events: tuple[int, ...] = ()
+    properties: tuple[int, ...] = ()
+    unknown: tuple[int, ...] = ()
+
+
+def pack_eos_device_info_ex(info: EosDeviceInfoEx) -> bytes:
+    body = pack_array("I", info.events) + pack_array("I", info.properties) + pack_array("I", info.unknown)
+    return u32(4 + len(body)) + body
+
+
+def parse_eos_device_info_ex(buf: bytes | bytearray | memoryview) -> EosDeviceInfoEx:
+    _check_size(buf, "DeviceInfoEx")
+    r = Reader(buf)
+    r.u32()
+    return EosDeviceInfoEx(r.array("I"), r.array("I"), r.array("I"))
+
+
+def parse_storage_ids(buf: bytes | bytearray | memoryview) -> tuple[int, ...]:
+    """GetStorageIDs (0x1004 / EOS 0x9101): a u32 array."""
+    _check_size(buf, "StorageIDs")
+    return Reader(buf).array("I")
+
+
+@dataclass(frozen=True)
+class EosFolderEntry:
+    """One entry of EOS GetObjectInfoEx (0x9109), the fast folder listing libgphoto2 uses on EOS bodies.
+
+    Layout: u32 entry size (>= 56), then u32 handle, u32 storage, u16 format at +8, u8 flags at +16 (bit 0:
+    read-only), u32 size at +20, 16-byte NUL-padded ASCII file name at +32, u32 time (seconds) at +48.
+    """
+
+    handle: int
+    storage_id: int
+    object_format: int
+    flags: int
+    size_bytes: int
+    filename: str
+    time_s: int
+
+
+_FE_BODY_BYTES = 52
+
+
+def pack_eos_folder_entries(entries: list[EosFolderEntry] | tuple[EosFolderEntry, ...]) -> bytes:
+    out = [u32(len(entries))]
+    for e in entries:
+        body = bytearray(_FE_BODY_BYTES)
+        struct.pack_into("<IIH", body, 0, e.handle, e.storage_id, e.object_format)
+        body[16] = e.flags & 0xFF
+        struct.pack_into("<I", body, 20, e.size_bytes)
+        name = e.filename.encode("ascii", errors="replace")[:15]
+        body[32 : 32 + len(name)] = name
+        struct.pack_into("<I", body, 48, e.time_s)
+        out.append(u32(4 + len(body)) + bytes(body))
+    return b"".join(out)
+
+
+def parse_eos_folder_entries(buf: bytes | bytearray | memoryview) -> tuple[EosFolderEntry, ...]:
+    _check_size(buf, "EOS folder listing")
+    r = Reader(buf)
+    count = r.u32()
+    if count * (4 + _FE_BODY_BYTES) > r.remaining:
+        raise ProtocolError(f"folder listing claims {count} entries in {r.remaining} bytes")
+    out = []
+    for _ in range(count):
+        size = r.u32()
+        if size < 4 + _FE_BODY_BYTES:
+            raise ProtocolError(f"folder entry of {size} bytes is shorter than {4 + _FE_BODY_BYTES}")
+        body = r.take(size - 4)
+        handle, storage, fmt = struct.unpack_from("<IIH", body, 0)
+        (size_bytes,) = struct.unpack_from("<I", body, 20)
+        (time_s,) = struct.unpack_from("<I", body, 48)
+        name = body[32:48].split(b"\x00", 1)[0].decode("ascii", errors="replace")
+        out.append(EosFolderEntry(handle, storage, fmt, body[16], size_bytes, name, time_s))
+    return tuple(out)

@@ -10,6 +10,8 @@ from mca.devices.ptp.codec import Container
 
 #: Receives each piece of a data-in phase as it arrives (streamed to a file without holding it all).
 DataSink = Callable[[memoryview], None]
+#: Receives the data phase of a late reply to an earlier transaction (operation code, transaction id, payload).
+StaleDataHook = Callable[[int, int, bytes], None]
 
 
 class TransportError(Exception):
@@ -34,11 +36,30 @@ class Response:
     data_bytes: int = 0
 
 
+@dataclass
+class LinkCounters:
+    """What a transport had to cope with; `mca camera doctor` and the fault tests read these."""
+
+    stale_replies_discarded: int = 0
+    stalls_cleared: int = 0
+    cancels_sent: int = 0
+    resets_sent: int = 0
+    timeouts: int = 0
+
+
 class Transport(ABC):
     """Runs PTP transactions; knows nothing about sessions or datasets."""
 
     #: A human name for error messages, e.g. "USB 001:004 Canon EOS 70D".
     name: str = "camera"
+    #: The USB vendor id when the camera is on USB (libgphoto2 restores Canon's extension id from it).
+    usb_vendor_id: int | None = None
+    #: Called with the data phase of a reply that arrived after its transaction was given up (a late GetEvent
+    #: reply carries events the host must not lose).
+    on_stale_data: StaleDataHook | None = None
+
+    def __init__(self) -> None:
+        self.counters = LinkCounters()
 
     @abstractmethod
     def transaction(
@@ -55,15 +76,24 @@ class Transport(ABC):
         """Send a command (and its data-out phase), receive any data-in phase and the response.
 
         Data-in goes to `sink` when given, else it is collected into `Response.data`
-        (bounded by `max_data_bytes`; a larger claim is a `ProtocolError`).
+        (bounded by `max_data_bytes`; a larger claim is a `ProtocolError`). Replies to earlier
+        transactions that arrive first are discarded (their data goes to `on_stale_data`).
         """
 
     @abstractmethod
     def read_event(self, timeout_s: float) -> Container | None:
         """The next standard event (interrupt endpoint / event channel), or None after the timeout."""
 
-    def recover(self) -> None:
+    def recover(self, transaction_id: int | None = None) -> None:  # noqa: B027 (a no-op unless overridden)
         """Bring the link back to idle after an aborted transaction (cancel, clear stalls, drain)."""
+
+    def reset_device(self) -> None:  # noqa: B027 (a no-op where there is no such request)
+        """Ask the device to reset its PTP state (USB class request 0x66); a no-op where there is none."""
+
+    @property
+    def can_resume(self) -> bool:
+        """Whether a transaction may follow a failed one on this link (False once the link is closed)."""
+        return True
 
     @abstractmethod
     def close(self) -> None:

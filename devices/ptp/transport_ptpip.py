@@ -4,18 +4,30 @@ Packets are u32 length, u32 type, body. The command/data connection carries
 OperationRequest, StartData/Data/EndData and OperationResponse; the event
 connection carries Event packets. The simulated camera's server reuses the
 same functions from the other side.
+
+The host introduces itself with the same GUID on every connection (a camera
+asks its user to approve each new host; libgphoto2 stores its GUID too): by
+default one derived from the machine id and the user, or any 16 bytes the
+caller keeps. A background thread reads the event connection all the time
+(a camera whose event channel is never read stalls), answering pings and
+queueing events for `read_event`. Packets are received in bounded pieces, so
+a header's claim allocates nothing until the bytes arrive.
 """
 
 from __future__ import annotations
 
-import select
+import getpass
 import socket
 import struct
+import threading
 import uuid
+from collections import deque
 from dataclasses import dataclass
+from pathlib import Path
 
-from mca.devices.ptp.codec import Container, ProtocolError, Reader, parse_params
+from mca.devices.ptp.codec import Container, ProtocolError, Reader, is_older_transaction, parse_params
 from mca.devices.ptp.codes import ContainerType
+from mca.devices.ptp.policy import DEFAULT_POLICY, PtpPolicy
 from mca.devices.ptp.transport import DeviceDisconnected, Response, Transport, TransportError, TransportTimeout
 
 DEFAULT_PORT = 15740
@@ -26,7 +38,25 @@ DATAPHASE_NONE_OR_IN, DATAPHASE_OUT = 1, 2
 #: Largest control packet accepted; data packets are bounded by the transaction's own limit.
 MAX_CONTROL_PACKET_BYTES = 64 * 1024
 MAX_DATA_PACKET_BYTES = 64 * 1024 * 1024
+#: Bytes received per recv call: a packet's claimed length is never allocated before its bytes arrive.
+RECV_PIECE_BYTES = 64 * 1024
+#: Events kept for `read_event`; older ones are dropped beyond this.
+MAX_QUEUED_EVENTS = 256
 _HDR = struct.Struct("<II")
+INIT_FAIL_REASONS = {1: "rejected", 2: "busy (another computer holds the camera)", 3: "unspecified"}
+
+
+def host_guid(machine_id_path: Path = Path("/etc/machine-id")) -> bytes:
+    """A GUID that stays the same for this machine and user, so the camera recognises the host it approved."""
+    try:
+        machine = machine_id_path.read_text().strip()
+    except OSError:
+        machine = socket.gethostname()
+    try:
+        user = getpass.getuser()
+    except Exception:
+        user = "user"
+    return uuid.uuid5(uuid.NAMESPACE_OID, f"mca-ptpip-host:{machine}:{user}").bytes
 
 
 def pack_packet(kind: int, body: bytes = b"") -> bytes:
@@ -178,8 +208,12 @@ class _Conn:
             got += n
 
     def recv_exact(self, n: int) -> bytes:
-        buf = bytearray(n)
-        self.recv_into(memoryview(buf))
+        """Exactly `n` bytes, received in pieces of at most RECV_PIECE_BYTES (nothing allocated up front)."""
+        buf = bytearray()
+        while len(buf) < n:
+            piece = bytearray(min(RECV_PIECE_BYTES, n - len(buf)))
+            self.recv_into(memoryview(piece))
+            buf += piece
         return bytes(buf)
 
     def recv_packet(self, max_bytes: int = MAX_CONTROL_PACKET_BYTES) -> tuple[int, bytes]:
@@ -191,34 +225,92 @@ class PtpIpTransport(Transport):
     """The initiator (host) side of PTP/IP."""
 
     def __init__(
-        self, host: str = "127.0.0.1", port: int = DEFAULT_PORT, *, timeout_s: float = 5.0, name: str = "mca"
+        self,
+        host: str = "127.0.0.1",
+        port: int = DEFAULT_PORT,
+        *,
+        timeout_s: float | None = None,
+        name: str = "mca",
+        guid: bytes | None = None,
+        policy: PtpPolicy = DEFAULT_POLICY,
     ) -> None:
+        super().__init__()
         self.name = f"ptpip:{host}:{port}"
-        self.timeout_s = timeout_s
+        self.policy = policy
+        self.timeout_s = policy.transaction_timeout_s if timeout_s is None else timeout_s
+        self.guid = guid if guid is not None else host_guid()
         self._closed = False
+        self._desynced = False  # a packet was cut mid-way: the stream cannot be read on
+        self._codes: dict[int, int] = {}
+        self._events: deque[Container] = deque(maxlen=MAX_QUEUED_EVENTS)
+        self._event_ready = threading.Condition()
+        self._event_thread: threading.Thread | None = None
+        connect_timeout = min(self.timeout_s, 10.0)
         try:
-            cmd = socket.create_connection((host, port), timeout=timeout_s)
+            cmd = socket.create_connection((host, port), timeout=connect_timeout)
         except OSError as exc:
             raise TransportError(
                 f"cannot reach {self.name}: {exc}; is the camera (or `mca camera serve-sim`) running?"
             ) from exc
         cmd.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self.cmd = _Conn(cmd, self.name)
-        self.cmd.send(pack_init_command_request(uuid.uuid4().bytes, name))
+        self.cmd.send(pack_init_command_request(self.guid, name))
         kind, body = self.cmd.recv_packet()
         if kind != INIT_COMMAND_ACK:
             cmd.close()
+            reason = INIT_FAIL_REASONS.get(struct.unpack_from("<I", body)[0], "") if len(body) >= 4 else ""
             raise TransportError(
-                f"{self.name} refused the connection (packet type {kind}); accept the host on the camera"
+                f"{self.name} refused the connection (packet type {kind}{', ' + reason if reason else ''}); "
+                "accept this computer on the camera's screen, or close the other program using it"
             )
         self.connection_id, self.camera_guid, self.camera_name = parse_init_command_ack(body)
-        evt = socket.create_connection((host, port), timeout=timeout_s)
+        try:
+            evt = socket.create_connection((host, port), timeout=connect_timeout)
+        except OSError as exc:
+            self.close()
+            raise TransportError(f"{self.name}: the event connection failed: {exc}") from exc
         self.evt = _Conn(evt, self.name)
         self.evt.send(pack_packet(INIT_EVENT_REQUEST, struct.pack("<I", self.connection_id)))
         kind, _ = self.evt.recv_packet()
         if kind != INIT_EVENT_ACK:
             self.close()
             raise TransportError(f"{self.name} refused the event connection (packet type {kind})")
+        self._event_thread = threading.Thread(target=self._read_events, name="ptpip-events", daemon=True)
+        self._event_thread.start()
+
+    # -- the event connection, read all the time ----------------------------------------------------------------
+    def _read_events(self) -> None:
+        self.evt.sock.settimeout(0.5)
+        while not self._closed:
+            try:
+                kind, body = self.evt.recv_packet()
+            except TransportTimeout:
+                continue
+            except (TransportError, ProtocolError, OSError):
+                break
+            try:
+                if kind == PING:
+                    self.evt.send(pack_packet(PONG))
+                elif kind == EVENT:
+                    event = parse_event_packet(body)
+                    with self._event_ready:
+                        self._events.append(event)
+                        self._event_ready.notify_all()
+            except (TransportError, ProtocolError):
+                continue
+        with self._event_ready:
+            self._event_ready.notify_all()
+
+    def read_event(self, timeout_s: float) -> Container | None:
+        with self._event_ready:
+            if not self._events:
+                self._event_ready.wait(timeout_s)
+            return self._events.popleft() if self._events else None
+
+    # -- transactions ----------------------------------------------------------------------------------------
+    def _recv_header(self, max_bytes: int) -> tuple[int, int]:
+        raw = self.cmd.recv_exact(8)
+        return parse_packet_header(raw, max_bytes)
 
     def transaction(
         self,
@@ -232,7 +324,10 @@ class PtpIpTransport(Transport):
         timeout_s=None,
     ) -> Response:
         if self._closed:
-            raise TransportError(f"{self.name} is closed")
+            raise DeviceDisconnected(f"{self.name} is closed; reconnect")
+        self._codes[transaction_id] = code  # a late reply's data is handed on with its operation code
+        while len(self._codes) > 64:
+            del self._codes[next(iter(self._codes))]
         self.cmd.sock.settimeout(self.timeout_s if timeout_s is None else timeout_s)
         self.cmd.send(
             pack_operation_request(
@@ -245,30 +340,51 @@ class PtpIpTransport(Transport):
         total: int | None = None
         got = 0
         data: bytearray | None = None
+        stale = 0
+        stale_tid: int | None = None
+        stale_data = bytearray()
         while True:
-            body_len, kind = parse_packet_header(
-                self.cmd.recv_exact(8), max(max_data_bytes + 4, MAX_CONTROL_PACKET_BYTES)
-            )
+            try:
+                body_len, kind = self._recv_header(max(max_data_bytes + 4, MAX_CONTROL_PACKET_BYTES))
+            except TransportTimeout:
+                if got or stale_tid is not None:
+                    self._desynced = True
+                raise
+            self._desynced = True  # until the packet is complete
             if kind in (DATA, END_DATA):
-                if total is None:
-                    raise ProtocolError(f"{self.name} sent data without StartData")
                 if body_len < 4:
                     raise ProtocolError(f"{self.name} sent a data packet without its transaction id")
-                (_tid,) = struct.unpack("<I", self.cmd.recv_exact(4))
+                (tid,) = struct.unpack("<I", self.cmd.recv_exact(4))
                 n = body_len - 4
+                if stale_tid is not None and tid == stale_tid:
+                    piece = self.cmd.recv_exact(n)
+                    if len(stale_data) + n <= 4 * 1024 * 1024:
+                        stale_data += piece
+                    self._desynced = False
+                    continue
+                if total is None:
+                    raise ProtocolError(f"{self.name} sent data without StartData")
                 if got + n > total:
                     raise ProtocolError(f"{self.name} sent {got + n} data bytes after announcing {total}")
                 if sink is None:
                     self.cmd.recv_into(memoryview(data)[got : got + n])  # type: ignore[arg-type]
                 else:
-                    piece = bytearray(n)
-                    self.cmd.recv_into(memoryview(piece))
-                    sink(memoryview(piece))
+                    remaining = n
+                    while remaining:
+                        piece = self.cmd.recv_exact(min(RECV_PIECE_BYTES * 16, remaining))
+                        sink(memoryview(piece))
+                        remaining -= len(piece)
                 got += n
+                self._desynced = False
                 continue
             body = self.cmd.recv_exact(body_len)
+            self._desynced = False
             if kind == START_DATA:
-                _, total = parse_start_data(body)
+                tid, announced = parse_start_data(body)
+                if tid != transaction_id:  # the data phase of a reply we gave up on
+                    stale_tid, stale_data = tid, bytearray()
+                    continue
+                total = announced
                 if total > max_data_bytes:
                     raise ProtocolError(
                         f"{self.name} announced {total} data bytes, more than the {max_data_bytes} expected"
@@ -279,6 +395,17 @@ class PtpIpTransport(Transport):
             if kind == OPERATION_RESPONSE:
                 resp = parse_operation_response(body)
                 if resp.transaction_id != transaction_id:
+                    if (
+                        is_older_transaction(resp.transaction_id, transaction_id)
+                        and stale < self.policy.stale_replies_max
+                    ):
+                        stale += 1
+                        self.counters.stale_replies_discarded += 1
+                        if stale_tid == resp.transaction_id and self.on_stale_data is not None and stale_data:
+                            stale_code = self._codes.get(resp.transaction_id, 0)
+                            self.on_stale_data(stale_code, resp.transaction_id, bytes(stale_data))
+                        stale_tid, stale_data = None, bytearray()
+                        continue
                     raise ProtocolError(
                         f"{self.name} answered transaction {resp.transaction_id}, expected {transaction_id}"
                     )
@@ -290,22 +417,15 @@ class PtpIpTransport(Transport):
                 continue
             raise ProtocolError(f"{self.name} sent PTP/IP packet type {kind} during a transaction")
 
-    def read_event(self, timeout_s: float) -> Container | None:
-        ready, _, _ = select.select([self.evt.sock], [], [], timeout_s)
-        if not ready:
-            return None
-        self.evt.sock.settimeout(self.timeout_s)
-        kind, body = self.evt.recv_packet()
-        if kind == PING:
-            self.evt.send(pack_packet(PONG))
-            return None
-        if kind != EVENT:
-            raise ProtocolError(f"{self.name} sent packet type {kind} on the event connection")
-        return parse_event_packet(body)
+    def recover(self, transaction_id: int | None = None) -> None:
+        """A timeout between packets leaves the stream in step (a late reply is discarded by its transaction id);
+        a packet cut mid-way does not, and the link is closed (the session reconnects)."""
+        if self._desynced:
+            self.close()
 
-    def recover(self) -> None:
-        """PTP/IP has no stall to clear: a broken stream cannot be resynchronised, so the link is closed."""
-        self.close()
+    @property
+    def can_resume(self) -> bool:
+        return not self._closed
 
     def close(self) -> None:
         if self._closed:
@@ -314,6 +434,12 @@ class PtpIpTransport(Transport):
         for conn in (getattr(self, "cmd", None), getattr(self, "evt", None)):
             if conn is not None:
                 try:
+                    conn.sock.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass
+                try:
                     conn.sock.close()
                 except OSError:
                     pass
+        if self._event_thread is not None and self._event_thread is not threading.current_thread():
+            self._event_thread.join(2.0)

@@ -2,8 +2,13 @@
 
 A thin shell around `devices.ptp.codec`: it moves bytes and keeps the USB
 rules (zero-length packets after full packets, stray ZLPs, bytes beyond the
-current container). The simulated EOS 70D is reached through this very code
-with `find_cameras(backend=SimUsbBackend(...))`.
+current container), and copes with what real bodies do: a stalled endpoint
+(EPIPE) is cleared and the read retried once if nothing was read yet; a reply
+to an earlier, given-up transaction is discarded (its data goes to
+`on_stale_data`); after a timeout the transaction is cancelled (class request
+0x64), the device status polled, and the device reset (0x66) if it stays
+busy. The simulated EOS 70D is reached through this very code with
+`find_cameras(backend=SimUsbBackend(...))`.
 """
 
 from __future__ import annotations
@@ -17,14 +22,18 @@ from typing import Any
 
 from mca.devices.ptp.codec import (
     HEADER_BYTES,
+    MAX_DATASET_BYTES,
     Container,
+    ContainerHeader,
     ProtocolError,
+    is_older_transaction,
     pack_command,
     pack_data,
     parse_container,
     parse_header,
 )
-from mca.devices.ptp.codes import CANON_VENDOR_ID, ContainerType, Resp
+from mca.devices.ptp.codes import CANON_VENDOR_ID, ContainerType, Op, Resp
+from mca.devices.ptp.policy import DEFAULT_POLICY, PtpPolicy
 from mca.devices.ptp.transport import DeviceDisconnected, Response, Transport, TransportError, TransportTimeout
 
 PTP_CLASS = (6, 1, 1)
@@ -34,8 +43,9 @@ REQ_DEVICE_RESET = 0x66
 REQ_GET_DEVICE_STATUS = 0x67
 #: Size of the reusable bulk-in buffer: large reads go straight into it.
 READ_CHUNK_BYTES = 1024 * 1024
-DEFAULT_TIMEOUT_S = 5.0
+DEFAULT_TIMEOUT_S = DEFAULT_POLICY.transaction_timeout_s
 MAX_STRAY_ZLPS = 8
+LIBUSB_ERROR_PIPE = -9
 
 
 @dataclass(frozen=True)
@@ -127,22 +137,38 @@ def _is_gone(exc: Exception) -> bool:
     return getattr(exc, "errno", None) in (errno.ENODEV, errno.EIO, errno.ESHUTDOWN) or code in (-4, -1)
 
 
+def _is_stall(exc: Exception) -> bool:
+    """libusb's LIBUSB_ERROR_PIPE: the endpoint halted (a real body stalls it when it aborts a transfer)."""
+    return getattr(exc, "errno", None) == errno.EPIPE or getattr(exc, "backend_error_code", None) == LIBUSB_ERROR_PIPE
+
+
+#: Late replies kept for `on_stale_data` up to this size (a GetEvent list); larger ones are only drained.
+MAX_STALE_KEEP_BYTES = 4 * 1024 * 1024
+
+
 class UsbTransport(Transport):
     """Bulk-out commands and data, bulk-in data and responses, interrupt-in events."""
 
-    def __init__(self, info: UsbCameraInfo, *, timeout_s: float = DEFAULT_TIMEOUT_S) -> None:
+    def __init__(
+        self, info: UsbCameraInfo, *, timeout_s: float | None = None, policy: PtpPolicy = DEFAULT_POLICY
+    ) -> None:
         import usb.core
         import usb.util
 
+        super().__init__()
         self._usb_core = usb.core
         self.info = info
         self.dev = info.device
-        self.timeout_s = timeout_s
+        self.policy = policy
+        self.timeout_s = policy.transaction_timeout_s if timeout_s is None else timeout_s
+        self.usb_vendor_id = info.vendor_id
         self.name = f"{info.port} {info.product or 'camera'}".strip()
         self._closed = False
         self._rx = array.array("B", bytes(READ_CHUNK_BYTES))
         self._rx_view = memoryview(self._rx)
-        self._pending = b""  # bytes read beyond the container in hand
+        # Bytes read beyond the container in hand: a view into the read buffer, always consumed (copied by its
+        # reader) before the next device read reuses that buffer.
+        self._pending: memoryview | bytes = b""
         try:
             try:
                 if self.dev.is_kernel_driver_active(info.interface_number):
@@ -168,7 +194,9 @@ class UsbTransport(Transport):
             )
             raise TransportError(f"could not claim {self.name}: {exc}; {hint}") from exc
         self.interface_number = info.interface_number
-        self.ep_in = self.ep_out = self.ep_int = None
+        self.ep_in: Any = None
+        self.ep_out: Any = None
+        self.ep_int: Any = None
         for ep in intf:
             kind = usb.util.endpoint_type(ep.bmAttributes)
             is_in = usb.util.endpoint_direction(ep.bEndpointAddress) == usb.util.ENDPOINT_IN
@@ -188,34 +216,59 @@ class UsbTransport(Transport):
 
     def _wrap(self, exc: Exception, what: str) -> TransportError:
         if isinstance(exc, self._usb_core.USBTimeoutError):
+            self.counters.timeouts += 1
             return TransportTimeout(f"{self.name} did not answer {what} in time; is it asleep or busy?")
+        if _is_stall(exc):
+            return TransportError(f"{self.name} stalled its endpoint during {what}")
         if _is_gone(exc):
             return DeviceDisconnected(f"{self.name} disconnected during {what}; reconnect the cable and retry")
         return TransportError(f"USB error on {self.name} during {what}: {exc}")
 
     def _write(self, data: bytes, timeout_s: float | None) -> None:
-        try:
-            sent = self.ep_out.write(data, self._ms(timeout_s))
-            if sent != len(data):
-                raise TransportError(f"{self.name} accepted {sent} of {len(data)} bytes")
-            if len(data) % self.max_packet_bytes == 0:
-                self.ep_out.write(b"", self._ms(timeout_s))  # a zero-length packet ends the transfer
-        except self._usb_core.USBError as exc:
-            raise self._wrap(exc, "a write") from exc
+        stalls = 0
+        while True:
+            try:
+                sent = self.ep_out.write(data, self._ms(timeout_s))
+                if sent != len(data):
+                    raise TransportError(f"{self.name} accepted {sent} of {len(data)} bytes")
+                if len(data) % self.max_packet_bytes == 0:
+                    self.ep_out.write(b"", self._ms(timeout_s))  # a zero-length packet ends the transfer
+                return
+            except self._usb_core.USBError as exc:
+                if _is_stall(exc) and stalls < self.policy.stall_retries:
+                    stalls += 1
+                    self._clear_halt(self.ep_out)
+                    continue
+                raise self._wrap(exc, "a write") from exc
 
-    def _read_chunk(self, timeout_s: float | None) -> memoryview:
-        """The next non-empty piece of the bulk-in stream (leftovers first)."""
-        if self._pending:
+    def _clear_halt(self, ep: Any) -> None:
+        try:
+            self.dev.clear_halt(ep.bEndpointAddress)
+            self.counters.stalls_cleared += 1
+        except self._usb_core.USBError as exc:
+            raise self._wrap(exc, "clearing a stalled endpoint") from exc
+
+    def _read_chunk(self, timeout_s: float | None, *, at_boundary: bool = False) -> memoryview:
+        """The next non-empty piece of the bulk-in stream (leftovers first).
+
+        `at_boundary`: nothing of the current container has been read yet, so a stalled endpoint may be
+        cleared and the read retried (libgphoto2 retries once, only then).
+        """
+        if len(self._pending):
             chunk, self._pending = memoryview(self._pending), b""
             return chunk
         deadline = time.monotonic() + (self.timeout_s if timeout_s is None else timeout_s)
-        zlps = 0
+        zlps = stalls = 0
         while True:
             try:
                 n = self.dev.read(
                     self.ep_in.bEndpointAddress, self._rx, self._ms(max(0.001, deadline - time.monotonic()))
                 )
             except self._usb_core.USBError as exc:
+                if _is_stall(exc) and at_boundary and stalls < self.policy.stall_retries:
+                    stalls += 1
+                    self._clear_halt(self.ep_in)
+                    continue
                 raise self._wrap(exc, "a read") from exc
             if n:
                 return self._rx_view[:n]
@@ -223,19 +276,36 @@ class UsbTransport(Transport):
             if zlps > MAX_STRAY_ZLPS or time.monotonic() > deadline:
                 raise TransportTimeout(f"{self.name} sent only zero-length packets")
 
-    def _read_exact(self, n: int, timeout_s: float | None) -> bytes:
+    def _read_exact(self, n: int, timeout_s: float | None, *, at_boundary: bool = False) -> bytes:
         out = bytearray()
         while len(out) < n:
-            chunk = self._read_chunk(timeout_s)
+            chunk = self._read_chunk(timeout_s, at_boundary=at_boundary and not out)
             take = n - len(out)
             out += chunk[:take]
             if len(chunk) > take:
-                self._pending = bytes(chunk[take:])
+                self._pending = chunk[take:]
         return bytes(out)
 
-    def _read_container_header(self, timeout_s: float | None):
-        head = self._read_exact(HEADER_BYTES, timeout_s)
+    def _read_container_header(self, timeout_s: float | None) -> tuple[ContainerHeader, bytes]:
+        head = self._read_exact(HEADER_BYTES, timeout_s, at_boundary=True)
         return parse_header(head), head
+
+    def _discard_stale(self, header: ContainerHeader, timeout_s: float | None) -> None:
+        """Read past a reply to an earlier transaction; hand a data phase of a sane size to `on_stale_data`."""
+        self.counters.stale_replies_discarded += 1
+        remaining = header.payload_bytes
+        keep = header.type == ContainerType.DATA and remaining <= MAX_STALE_KEEP_BYTES
+        kept = bytearray()
+        while remaining:
+            chunk = self._read_chunk(timeout_s)
+            take = min(remaining, len(chunk))
+            if keep:
+                kept += chunk[:take]
+            remaining -= take
+            if len(chunk) > take:
+                self._pending = chunk[take:]
+        if keep and self.on_stale_data is not None and len(kept) <= MAX_DATASET_BYTES:
+            self.on_stale_data(header.code, header.transaction_id, bytes(kept))
 
     # -- transactions ----------------------------------------------------
     def transaction(
@@ -256,9 +326,15 @@ class UsbTransport(Transport):
             self._write(pack_data(code, transaction_id, data_out), timeout_s)
         data: bytearray | None = None
         data_bytes = 0
+        stale = 0
         while True:
             header, head = self._read_container_header(timeout_s)
             if header.transaction_id != transaction_id:
+                late = is_older_transaction(header.transaction_id, transaction_id) or code == Op.OPEN_SESSION
+                if late and stale < self.policy.stale_replies_max and not data_bytes and data is None:
+                    stale += 1  # a reply the camera sent after we gave its transaction up
+                    self._discard_stale(header, timeout_s)
+                    continue
                 raise ProtocolError(
                     f"{self.name} answered transaction {header.transaction_id}, expected {transaction_id}"
                 )
@@ -285,7 +361,7 @@ class UsbTransport(Transport):
                     data_bytes += take
                     remaining -= take
                     if len(chunk) > take:
-                        self._pending = bytes(chunk[take:])
+                        self._pending = chunk[take:]
                 continue
             if header.type != ContainerType.RESPONSE:
                 raise ProtocolError(
@@ -314,10 +390,20 @@ class UsbTransport(Transport):
 
     # -- class requests --------------------------------------------------
     def cancel(self, transaction_id: int) -> None:
+        """Still Image class Cancel Request (0x64): u16 0x4001 (CancelTransaction) and the transaction id."""
         self._ctrl(0x21, REQ_CANCEL, struct.pack("<HI", 0x4001, transaction_id))
+        self.counters.cancels_sent += 1
 
     def device_reset(self) -> None:
+        """Still Image class Device Reset Request (0x66): the device drops its transaction state."""
         self._ctrl(0x21, REQ_DEVICE_RESET, None)
+        self.counters.resets_sent += 1
+
+    def reset_device(self) -> None:
+        try:
+            self.device_reset()
+        except TransportError:
+            pass
 
     def device_status(self) -> int:
         """The response code of Get Device Status (OK, DeviceBusy, ...)."""
@@ -335,22 +421,39 @@ class UsbTransport(Transport):
         except self._usb_core.USBError as exc:
             raise self._wrap(exc, f"class request 0x{request:02X}") from exc
 
-    def recover(self) -> None:
-        """After a timeout or a broken container: drop what is buffered, clear stalls, wait until idle."""
+    def recover(self, transaction_id: int | None = None) -> None:
+        """After a timeout or a broken container: cancel the transaction, wait until the device is idle
+        (Get Device Status), reset it if it stays busy, clear stalls and drop what is buffered."""
+        if self._closed:
+            return
         self._pending = b""
+        if transaction_id is not None:
+            try:
+                self.cancel(transaction_id)
+            except DeviceDisconnected:
+                raise
+            except TransportError:
+                pass
+        deadline = time.monotonic() + self.policy.recover_wait_s
+        idle = False
+        while time.monotonic() < deadline:
+            try:
+                status = self.device_status()
+            except DeviceDisconnected:
+                raise
+            except (TransportError, ProtocolError):
+                break
+            if status == Resp.OK:
+                idle = True
+                break
+            time.sleep(0.02)
+        if not idle:
+            self.reset_device()
         for ep in (self.ep_in, self.ep_out):
             try:
                 self.dev.clear_halt(ep.bEndpointAddress)
             except Exception:
                 pass
-        deadline = time.monotonic() + 2.0
-        while time.monotonic() < deadline:
-            try:
-                if self.device_status() == Resp.OK:
-                    break
-            except TransportError:
-                break
-            time.sleep(0.02)
         while True:  # drain anything still queued
             try:
                 n = self.dev.read(self.ep_in.bEndpointAddress, self._rx, 20)
@@ -372,7 +475,9 @@ class UsbTransport(Transport):
             pass
 
 
-def open_usb(port: str | None = None, backend: Any = None, *, timeout_s: float = DEFAULT_TIMEOUT_S) -> UsbTransport:
+def open_usb(
+    port: str | None = None, backend: Any = None, *, timeout_s: float | None = None, policy: PtpPolicy = DEFAULT_POLICY
+) -> UsbTransport:
     """Open the first camera, or the one at `usb:BUS:ADDR`."""
     cameras = find_cameras(backend)
     if port:
@@ -380,7 +485,7 @@ def open_usb(port: str | None = None, backend: Any = None, *, timeout_s: float =
     if not cameras:
         where = f" at {port}" if port else ""
         raise TransportError(f"no PTP camera found{where}: is it switched on, connected, and not held by gvfs?")
-    return UsbTransport(cameras[0], timeout_s=timeout_s)
+    return UsbTransport(cameras[0], timeout_s=timeout_s, policy=policy)
 
 
 def _normal_port(port: str) -> str:

@@ -1,8 +1,13 @@
 """The simulated EOS 70D served over PTP/IP on 127.0.0.1 (what `mca camera serve-sim --ptpip` runs).
 
-One initiator at a time: the command connection is greeted with
-InitCommandAck, the event connection with InitEventAck, then operations
-run through `SimEos70D.handle`. Closing the connection ends the session.
+One initiator holds the camera at a time, as on a real body: the command
+connection is greeted with InitCommandAck, the event connection with
+InitEventAck, then operations run through `SimEos70D.handle`. A second
+initiator gets InitFail (busy) and cannot end the first one's session; only
+the session owner's disconnect ends it. Connections are capped
+(`max_connections`), a connection that does not complete its handshake in
+time is dropped, and every packet is read in bounded pieces: a header
+claiming a large body costs nothing until the bytes actually arrive.
 """
 
 from __future__ import annotations
@@ -21,7 +26,8 @@ from mca.devices.ptp.transport_ptpip import (
     INIT_COMMAND_REQUEST,
     INIT_EVENT_ACK,
     INIT_EVENT_REQUEST,
-    MAX_DATA_PACKET_BYTES,
+    INIT_FAIL,
+    MAX_CONTROL_PACKET_BYTES,
     OPERATION_REQUEST,
     PING,
     PONG,
@@ -43,6 +49,12 @@ from mca.devices.sim_eos70d.responder import SimEos70D
 
 DATA_CHUNK_BYTES = 1024 * 1024
 MAX_DATA_OUT_BYTES = 16 * 1024 * 1024
+#: Connections held open at once (a command and an event connection per initiator, plus refusals in flight).
+MAX_CONNECTIONS = 8
+#: A connection must complete its init handshake within this time.
+HANDSHAKE_TIMEOUT_S = 10.0
+#: InitFail reasons (PTP/IP): 1 rejected, 2 busy, 3 unspecified.
+FAIL_REJECTED, FAIL_BUSY = 1, 2
 
 
 class PtpIpServer:
@@ -55,11 +67,13 @@ class PtpIpServer:
         port: int = 15740,
         *,
         faults: FaultPlan | None = None,
+        max_connections: int = MAX_CONNECTIONS,
     ) -> None:
         if host not in ("127.0.0.1", "localhost", "::1"):
             raise ValueError(f"the simulated camera binds only to loopback, not {host!r}")
         self.camera = camera or SimEos70D()
         self.faults = faults or FaultPlan()
+        self.max_connections = max_connections
         self.guid = uuid.uuid5(uuid.NAMESPACE_OID, self.camera.serial_number).bytes
         self._listener = socket.create_server((host, port), reuse_port=False)
         self._listener.settimeout(0.2)
@@ -68,9 +82,11 @@ class PtpIpServer:
         self._threads: list[threading.Thread] = []
         self._sockets: set[socket.socket] = set()
         self._next_conn = 1
-        self._event_conns: dict[int, tuple[_Conn, threading.Event]] = {}
+        self._event_conns: dict[int, tuple[_Conn | None, threading.Event]] = {}
+        self._owner: int | None = None  # the connection id holding the camera
         self._lock = threading.Lock()
         self.sessions_served = 0
+        self.refused = 0
 
     @property
     def address(self) -> str:
@@ -113,6 +129,11 @@ class PtpIpServer:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    @property
+    def open_connections(self) -> int:
+        with self._lock:
+            return len(self._sockets)
+
     # -- connections -----------------------------------------------------
     def _accept_loop(self) -> None:
         while not self._stop.is_set():
@@ -122,9 +143,19 @@ class PtpIpServer:
                 continue
             except OSError:
                 return
-            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             with self._lock:
-                self._sockets.add(sock)
+                full = len(self._sockets) >= self.max_connections
+                if not full:
+                    self._sockets.add(sock)
+            if full:  # too many at once: refuse without reading anything
+                self.refused += 1
+                try:
+                    sock.sendall(pack_packet(INIT_FAIL, struct.pack("<I", FAIL_BUSY)))
+                except OSError:
+                    pass
+                sock.close()
+                continue
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             t = threading.Thread(target=self._serve_socket, args=(sock,), name="sim-ptpip-conn", daemon=True)
             t.start()
             self._threads = [x for x in self._threads if x.is_alive()] + [t]
@@ -139,27 +170,38 @@ class PtpIpServer:
 
     def _serve_socket(self, sock: socket.socket) -> None:
         conn = _Conn(sock, "PTP/IP initiator")
-        sock.settimeout(10.0)
+        sock.settimeout(HANDSHAKE_TIMEOUT_S)
         try:
-            kind, body = conn.recv_packet()
+            kind, body = conn.recv_packet(MAX_CONTROL_PACKET_BYTES)
             if kind == INIT_COMMAND_REQUEST:
                 parse_init_command_request(body)
                 with self._lock:
-                    conn_id = self._next_conn
-                    self._next_conn += 1
-                    ready = threading.Event()
-                    self._event_conns[conn_id] = (None, ready)  # type: ignore[assignment]
-                conn.send(
-                    pack_init_command_ack(conn_id, self.guid, self.camera.device_info().model.replace("Canon ", ""))
-                )
-                ready.wait(10.0)
-                self._command_loop(conn, conn_id)
+                    busy = self._owner is not None
+                    if not busy:
+                        conn_id = self._next_conn
+                        self._next_conn += 1
+                        self._owner = conn_id
+                        ready = threading.Event()
+                        self._event_conns[conn_id] = (None, ready)
+                if busy:  # another initiator holds the camera
+                    self.refused += 1
+                    conn.send(pack_packet(INIT_FAIL, struct.pack("<I", FAIL_BUSY)))
+                    return
+                try:
+                    conn.send(
+                        pack_init_command_ack(conn_id, self.guid, self.camera.device_info().model.replace("Canon ", ""))
+                    )
+                    ready.wait(HANDSHAKE_TIMEOUT_S)
+                    self._command_loop(conn, conn_id)
+                finally:
+                    self._end_session(conn_id)
             elif kind == INIT_EVENT_REQUEST:
                 (conn_id,) = struct.unpack_from("<I", body) if len(body) >= 4 else (0,)
                 with self._lock:
                     entry = self._event_conns.get(conn_id)
-                if entry is None:
-                    conn.send(pack_packet(5, struct.pack("<I", 1)))  # InitFail
+                    taken = entry is not None and entry[0] is not None
+                if entry is None or taken:
+                    conn.send(pack_packet(INIT_FAIL, struct.pack("<I", FAIL_REJECTED)))
                     return
                 conn.send(pack_packet(INIT_EVENT_ACK))
                 with self._lock:
@@ -167,26 +209,49 @@ class PtpIpServer:
                 entry[1].set()
                 self._event_loop(conn, conn_id)
             else:
-                conn.send(pack_packet(5, struct.pack("<I", 1)))
+                conn.send(pack_packet(INIT_FAIL, struct.pack("<I", FAIL_REJECTED)))
         except (TransportError, ProtocolError, OSError):
             pass
         finally:
             self._drop(sock)
 
+    def _end_session(self, conn_id: int) -> None:
+        """The owner left: the camera's session ends, and its event connection with it."""
+        with self._lock:
+            if self._owner != conn_id:
+                return
+            self._owner = None
+            entry = self._event_conns.pop(conn_id, None)
+        self.camera.disconnect()
+        if entry and entry[0] is not None:
+            try:
+                entry[0].sock.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+
     def _event_loop(self, conn: _Conn, conn_id: int) -> None:
         conn.sock.settimeout(0.1)
-        listener = lambda ev: conn.send(pack_event_packet(ev.code, ev.transaction_id, ev.params))  # noqa: E731
+        send_lock = threading.Lock()
+
+        def listener(ev) -> None:
+            with send_lock:
+                conn.send(pack_event_packet(ev.code, ev.transaction_id, ev.params))
+
         self.camera.std_event_listeners.append(listener)
         try:
             while not self._stop.is_set():
+                with self._lock:
+                    if conn_id not in self._event_conns:
+                        return
                 try:
-                    kind, _ = conn.recv_packet()
+                    kind, _ = conn.recv_packet(MAX_CONTROL_PACKET_BYTES)
                 except TransportError as exc:
                     if "did not answer" in str(exc):
                         continue
                     return
                 if kind == PING:
-                    conn.send(pack_packet(PONG))
+                    with send_lock:
+                        conn.send(pack_packet(PONG))
         finally:
             try:
                 self.camera.std_event_listeners.remove(listener)
@@ -196,39 +261,29 @@ class PtpIpServer:
     def _command_loop(self, conn: _Conn, conn_id: int) -> None:
         self.sessions_served += 1
         conn.sock.settimeout(0.5)
-        try:
-            while not self._stop.is_set():
-                try:
-                    header = conn.recv_exact(8)
-                except TransportError as exc:
-                    if "did not answer" in str(exc):
-                        continue
-                    return
-                conn.sock.settimeout(10.0)
-                body_len, kind = parse_packet_header(header)
-                body = conn.recv_exact(body_len)
-                if kind == PING:
-                    conn.send(pack_packet(PONG))
+        while not self._stop.is_set():
+            try:
+                header = conn.recv_exact(8)
+            except TransportError as exc:
+                if "did not answer" in str(exc):
                     continue
-                if kind != OPERATION_REQUEST:
-                    raise ProtocolError(f"expected OperationRequest, got packet type {kind}")
-                _, cmd = parse_operation_request(body)
-                data_out = self._receive_data_out(conn) if self.camera.expects_data_out(cmd.code) else None
-                if not self._respond(conn, cmd, data_out):
-                    return
-                conn.sock.settimeout(0.5)
-        finally:
-            self.camera.disconnect()
-            with self._lock:
-                entry = self._event_conns.pop(conn_id, None)
-            if entry and entry[0] is not None:
-                try:
-                    entry[0].sock.shutdown(socket.SHUT_RDWR)
-                except OSError:
-                    pass
+                return
+            conn.sock.settimeout(10.0)
+            body_len, kind = parse_packet_header(header, MAX_CONTROL_PACKET_BYTES)
+            body = conn.recv_exact(body_len)
+            if kind == PING:
+                conn.send(pack_packet(PONG))
+                continue
+            if kind != OPERATION_REQUEST:
+                raise ProtocolError(f"expected OperationRequest, got packet type {kind}")
+            _, cmd = parse_operation_request(body)
+            data_out = self._receive_data_out(conn) if self.camera.expects_data_out(cmd.code) else None
+            if not self._respond(conn, cmd, data_out):
+                return
+            conn.sock.settimeout(0.5)
 
     def _receive_data_out(self, conn: _Conn) -> bytes:
-        kind, body = conn.recv_packet()
+        kind, body = conn.recv_packet(MAX_CONTROL_PACKET_BYTES)
         if kind != START_DATA:
             raise ProtocolError(f"expected StartData, got packet type {kind}")
         _, total = parse_start_data(body)
@@ -236,7 +291,8 @@ class PtpIpServer:
             raise ProtocolError(f"data-out of {total} bytes is larger than the camera accepts")
         out = bytearray()
         while True:
-            kind, body = conn.recv_packet(MAX_DATA_PACKET_BYTES)
+            # the packet may not claim more than what is left of the announced total (plus its transaction id)
+            kind, body = conn.recv_packet(4 + total - len(out))
             if kind not in (DATA, END_DATA):
                 raise ProtocolError(f"expected Data/EndData, got packet type {kind}")
             out += body[4:]
@@ -249,13 +305,21 @@ class PtpIpServer:
         f = self.faults
         if f.stall_op is not None and cmd.code == f.stall_op:
             f.stall_op = None
-            time.sleep(30.0 if not self._stop.is_set() else 0)  # the initiator times out and hangs up
+            self._stop.wait(30.0)  # the initiator times out and hangs up
             return False
         if f.busy_count:
             self.camera.busy_responses += f.busy_count
             f.busy_count = 0
         self.camera.short_partial_bytes = f.short_read_bytes
         reply = self.camera.handle(cmd, data_out)
+        if reply.dropped:
+            return True
+        delay = reply.delay_s
+        if f.late_reply_op is not None and cmd.code == f.late_reply_op:
+            f.late_reply_op = None
+            delay += f.late_reply_s
+        if delay:
+            self._stop.wait(delay)
         cut_after = None
         if f.disconnect_after_in_bytes is not None and cmd.code in DOWNLOAD_OPS:
             cut_after, f.disconnect_after_in_bytes = f.disconnect_after_in_bytes, None

@@ -3,8 +3,13 @@
 It implements the Still Image Capture class on the device side: it parses the
 bulk-out stream into containers, runs them through `SimEos70D.handle`, and
 serves the data and response containers as bulk-in transfers (ending each
-with a zero-length packet when it fills whole packets). Optional pacing
-emulates a USB 2.0 link; `FaultPlan` injects failures.
+with a zero-length packet when it fills whole packets). A reply may be ready
+only after a delay (a half press while focusing, a late answer after the host
+gave up); a halted endpoint answers reads with EPIPE until cleared; the
+Still Image class requests (cancel, reset, status) act on the queue. Optional
+pacing emulates a USB 2.0 link; `FaultPlan` injects failures. Any responder
+with `handle(command, data_out)` plugs in: the simulated 70D, or
+`devices.ptp.replay.ReplayResponder` replaying a real body's log.
 """
 
 from __future__ import annotations
@@ -28,7 +33,8 @@ from mca.devices.ptp.codec import (
     parse_container,
     parse_header,
 )
-from mca.devices.ptp.codes import CANON_VENDOR_ID, EOS_70D_PRODUCT_ID, ContainerType, Resp
+from mca.devices.ptp.codes import CANON_VENDOR_ID, EOS_70D_PRODUCT_ID, ContainerType, Op, Resp
+from mca.devices.ptp.events import EosObjectAdded, EosRequestObjectTransfer, parse_eos_events
 from mca.devices.sim_eos70d.faults import DOWNLOAD_OPS, FaultPlan, corrupt_container
 from mca.devices.sim_eos70d.responder import SimEos70D
 
@@ -50,6 +56,9 @@ class _Transfer:
     length: int
     offset: int = 0
     zlp: bool = False  # a zero-length packet marker
+    ready_at: float = 0.0  # not served before this time (a slow or late reply)
+    transaction_id: int = 0
+    keep_on_cancel: bool = False  # a body that ignores the host's cancel request
 
 
 @dataclass
@@ -83,13 +92,18 @@ class SimUsbBackend(usb.backend.IBackend):
         self.device_id: _DeviceId | None = _DeviceId(bus, address)
         self.configuration = 0
         self._out = bytearray()
-        self._pending_cmd = None
+        self._pending_cmd: Any = None
         self._in: deque[_Transfer] = deque()
         self._lock = threading.RLock()
         self._stalled = False
+        self._halted = False  # the bulk-in endpoint answers EPIPE until the host clears the halt
         self._pace_free_at = 0.0
         self.in_bytes_total = 0
         self._disconnect_armed_at: int | None = None
+        self._interrupt_at: int | None = None
+        self.stalls_served = 0
+        self.cancels_received = 0
+        self.resets_received = 0
         self._strings = {1: "Canon Inc.", 2: self.camera.device_info().model, 3: self.camera.serial_number}
 
     # -- hot-plug --------------------------------------------------------
@@ -233,6 +247,7 @@ class SimUsbBackend(usb.backend.IBackend):
     def clear_halt(self, dev_handle, ep):
         self._gone(dev_handle)
         self._stalled = False
+        self._halted = False
 
     def reset_device(self, dev_handle):
         self._gone(dev_handle)
@@ -283,6 +298,28 @@ class SimUsbBackend(usb.backend.IBackend):
             f.busy_count = 0
         self.camera.short_partial_bytes = f.short_read_bytes
         reply = self.camera.handle(cmd, data_out)
+        if getattr(reply, "dropped", False):
+            return
+        delay = getattr(reply, "delay_s", 0.0)
+        keep = False
+        if f.late_reply_op is not None and cmd.code == f.late_reply_op:
+            f.late_reply_op = None
+            delay += f.late_reply_s
+            keep = f.ignore_cancel
+        carries_file = (
+            f.lose_object_event_reply
+            and cmd.code == Op.EOS_GET_EVENT
+            and reply.data is not None
+            and any(isinstance(e, (EosObjectAdded, EosRequestObjectTransfer)) for e in parse_eos_events(reply.data))
+        )
+        if carries_file:
+            f.lose_object_event_reply = False
+            return  # the body dequeued the events; the host never hears of them
+        if f.epipe_op is not None and cmd.code == f.epipe_op:
+            f.epipe_op = None
+            self._halted = True
+        ready_at = max(time.monotonic() + delay, self._in[-1].ready_at if self._in else 0.0)
+        tid = cmd.transaction_id
         resp_raw = pack_response(reply.response.code, reply.response.transaction_id, reply.response.params)
         if f.corrupt_op is not None and cmd.code == f.corrupt_op:
             f.corrupt_op = None
@@ -290,27 +327,33 @@ class SimUsbBackend(usb.backend.IBackend):
         if f.disconnect_after_in_bytes is not None and cmd.code in DOWNLOAD_OPS:
             self._disconnect_armed_at = self.in_bytes_total + f.disconnect_after_in_bytes
             f.disconnect_after_in_bytes = None
+        if f.interrupt_after_in_bytes is not None and cmd.code in DOWNLOAD_OPS:
+            self._interrupt_at = self.in_bytes_total + f.interrupt_after_in_bytes
+            f.interrupt_after_in_bytes = None
         if reply.data is not None:
             data = memoryview(reply.data).cast("B")
             head = memoryview(pack_data_header(cmd.code, cmd.transaction_id, len(data)))
             if f.coalesce_response:
-                self._push([head, data, memoryview(resp_raw)])
+                self._push([head, data, memoryview(resp_raw)], ready_at, tid, keep)
                 return
-            self._push([head, data])
-        self._push([memoryview(resp_raw)])
+            self._push([head, data], ready_at, tid, keep)
+        self._push([memoryview(resp_raw)], ready_at, tid, keep)
 
-    def _push(self, segments: list[memoryview]) -> None:
+    def _push(self, segments: list[memoryview], ready_at: float = 0.0, tid: int = 0, keep: bool = False) -> None:
         length = sum(len(s) for s in segments)
-        self._in.append(_Transfer(segments, length))
+        self._in.append(_Transfer(segments, length, ready_at=ready_at, transaction_id=tid, keep_on_cancel=keep))
         if length % MAX_PACKET_BYTES == 0:
-            self._in.append(_Transfer([], 0, zlp=True))
+            self._in.append(_Transfer([], 0, zlp=True, ready_at=ready_at, transaction_id=tid, keep_on_cancel=keep))
 
     def bulk_read(self, dev_handle, ep, intf, buff, timeout):
         deadline = time.monotonic() + timeout / 1000.0
         while True:
             with self._lock:
                 self._gone(dev_handle)
-                if self._in and not self._stalled:
+                if self._halted and self._in:
+                    self.stalls_served += 1
+                    raise usb.core.USBError("Pipe error", -9, errno.EPIPE)
+                if self._in and not self._stalled and self._in[0].ready_at <= time.monotonic():
                     return self._serve(buff)
             if time.monotonic() >= deadline:
                 raise usb.core.USBTimeoutError("Operation timed out", -7, errno.ETIMEDOUT)
@@ -323,6 +366,9 @@ class SimUsbBackend(usb.backend.IBackend):
             return 0
         out = memoryview(buff).cast("B")
         want = min(len(out), transfer.length - transfer.offset)
+        if self._interrupt_at is not None and self.in_bytes_total >= self._interrupt_at:
+            self._interrupt_at = None
+            raise KeyboardInterrupt  # the photographer pressed Ctrl-C in the middle of a download
         if self._disconnect_armed_at is not None:
             allowed = self._disconnect_armed_at - self.in_bytes_total
             if allowed <= 0:
@@ -386,19 +432,26 @@ class SimUsbBackend(usb.backend.IBackend):
                 n = min(len(out), len(desc))
                 out[:n] = desc[:n]
                 return n
-            if bmRequestType == 0x21 and bRequest == 0x64:  # cancel
+            if bmRequestType == 0x21 and bRequest == 0x64:  # cancel: the body drops the transaction's replies
+                self.cancels_received += 1
+                if self.faults.ignore_cancel:  # a body that goes on as if nothing was asked
+                    return len(out)
+                kept = [t for t in self._in if t.keep_on_cancel]
                 self._in.clear()
+                self._in.extend(kept)
                 self._pending_cmd = None
                 self._stalled = False
                 return len(out)
             if bmRequestType == 0x21 and bRequest == 0x66:  # device reset
+                self.resets_received += 1
                 self._in.clear()
                 self._out.clear()
                 self._pending_cmd = None
                 self._stalled = False
+                self._halted = False
                 return 0
             if bmRequestType == 0xA1 and bRequest == 0x67:  # get device status
-                status = struct.pack("<HH", 4, Resp.DEVICE_BUSY if self._stalled else Resp.OK)
+                status = struct.pack("<HH", 4, Resp.DEVICE_BUSY if self._stalled or self._halted else Resp.OK)
                 out[:4] = status
                 return 4
             return 0

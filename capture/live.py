@@ -1,0 +1,227 @@
+"""`mca capture --live`: EOS live-view frames with a live MCA disparity preview, streamed to the rerun viewer.
+
+Frames come from GetViewFinderData (0x9153) on the camera or the simulated 70D
+(which serves JPEGs rendered from its scene). Each frame is decoded, previewed
+with `processing.live_preview.live_disparity` (the profile's filter geometry)
+and logged on the `live_frame` timeline: the frame itself (the JPEG as the camera
+sent it), the disparity in false colour, its confidence, and the frame rate.
+The loop ends after `frames`, on Ctrl-C, or when `stop()` says so; live view
+is switched off again and the camera closed in every case.
+"""
+
+from __future__ import annotations
+
+import socket
+import statistics
+import subprocess
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from mca.devices.ptp.camera import Camera, CaptureError, PtpError
+from mca.devices.ptp.codec import ProtocolError
+from mca.devices.ptp.transport import TransportError
+from mca.processing.live_preview import LivePreviewParams, disparity_colours, live_disparity
+
+
+class LiveError(Exception):
+    """Live view could not run (the camera offers none, or the viewer could not start)."""
+
+
+@dataclass
+class LiveStats:
+    frames: int = 0
+    width_px: int = 0
+    height_px: int = 0
+    frames_per_s: float = 0.0
+    preview_ms_median: float = 0.0
+    preview_ms: list[float] = field(default_factory=list, repr=False)
+
+
+def decode_jpeg(data: bytes) -> np.ndarray:
+    """(H, W, 3) uint8 RGB from JPEG bytes; a frame that does not decode is a `ProtocolError`."""
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    if image is None:
+        raise ProtocolError(f"a live-view frame of {len(data)} bytes is not a JPEG")
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class LiveRecorder:
+    """A rerun stream for live view: to a .rrd file, to a local web viewer (`serve`), or both."""
+
+    def __init__(self, record: Path | None, serve: bool = False) -> None:
+        from mca.capture.recording import disable_rerun_analytics
+
+        disable_rerun_analytics()
+        import rerun as rr
+
+        self._rr = rr
+        self._server: subprocess.Popen[bytes] | None = None
+        self.viewer_url: str | None = None
+        self.stream = rr.RecordingStream("mca-live")
+        sinks: list[Any] = []
+        if record is not None:
+            Path(record).parent.mkdir(parents=True, exist_ok=True)
+            sinks.append(rr.FileSink(str(record)))
+        if serve:
+            sinks.append(rr.GrpcSink(self._start_server()))
+        if not sinks:
+            raise LiveError("live view needs a recording file or --serve")
+        self.stream.set_sinks(*sinks)
+
+    def _start_server(self) -> str:
+        from urllib.parse import quote
+
+        from mca.capture.recording import child_environment, rerun_executable
+
+        exe = rerun_executable()
+        if exe is None:
+            raise LiveError("--serve needs the `rerun` command of rerun-sdk; reinstall with `pip install rerun-sdk`")
+        grpc_port, web_port = _free_port(), _free_port()
+        self._server = subprocess.Popen(
+            [exe, "--serve-web", "--bind", "127.0.0.1", "--port", str(grpc_port), "--web-viewer-port", str(web_port)],
+            env=child_environment(),
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        deadline = time.monotonic() + 10.0
+        while True:
+            try:
+                socket.create_connection(("127.0.0.1", grpc_port), timeout=0.2).close()
+                break
+            except OSError:
+                if self._server.poll() is not None or time.monotonic() > deadline:
+                    self.close()
+                    raise LiveError(f"the rerun viewer server did not start on port {grpc_port}") from None
+                time.sleep(0.1)
+        url = f"rerun+http://127.0.0.1:{grpc_port}/proxy"
+        self.viewer_url = f"http://127.0.0.1:{web_port}/?url={quote(url, safe='')}"
+        return url
+
+    def log_frame(self, index: int, jpeg: bytes, preview_rgb: np.ndarray, confidence: np.ndarray, fps: float) -> None:
+        rr = self._rr
+        self.stream.set_time("live_frame", sequence=index)
+        self.stream.log("live/frame", rr.EncodedImage(contents=jpeg, media_type="image/jpeg"))
+        self.stream.log("live/disparity", rr.Image(preview_rgb))
+        self.stream.log("live/confidence", rr.Image((np.clip(confidence, 0, 1) * 255).astype(np.uint8)))
+        self.stream.log("live/frames_per_s", rr.Scalars(fps))
+
+    def close(self) -> None:
+        try:
+            self.stream.flush()
+            self.stream.disconnect()
+        finally:
+            if self._server is not None:
+                self._server.terminate()
+                try:
+                    self._server.wait(timeout=5)
+                except subprocess.TimeoutExpired:
+                    self._server.kill()
+                    self._server.wait(timeout=5)
+                self._server = None
+
+
+def run_live(
+    factory: Callable[[], Camera],
+    *,
+    profile_name: str | None = None,
+    record: Path | None = None,
+    serve: bool = False,
+    frames: int | None = None,
+    log: Callable[[str], None] = lambda msg: None,
+    stop: Callable[[], bool] | None = None,
+    params: LivePreviewParams | None = None,
+) -> LiveStats:
+    """Live view until `frames` frames, Ctrl-C or `stop()`; returns what it measured."""
+    from mca.capture.profiles import DEFAULT_PROFILE, load_profile
+
+    profile = load_profile(profile_name or DEFAULT_PROFILE)
+    recorder = LiveRecorder(record, serve)
+    if recorder.viewer_url:
+        log(f"live preview at {recorder.viewer_url}")
+    stats = LiveStats()
+    cam: Camera | None = None
+    started = time.monotonic()
+    try:
+        try:
+            cam = factory()
+            cam.start_live_view()
+        except (CaptureError, PtpError) as exc:
+            raise LiveError(f"live view could not start: {exc}") from exc
+        log("live view on; Ctrl-C to stop")
+        while frames is None or stats.frames < frames:
+            if stop is not None and stop():
+                break
+            jpeg = cam.live_view_frame()
+            rgb = decode_jpeg(jpeg)
+            t0 = time.perf_counter()
+            preview = live_disparity(rgb, profile.aperture, params)
+            stats.preview_ms.append(1000 * (time.perf_counter() - t0))
+            stats.frames += 1
+            stats.height_px, stats.width_px = rgb.shape[:2]
+            elapsed = time.monotonic() - started
+            fps = stats.frames / elapsed if elapsed > 0 else 0.0
+            recorder.log_frame(stats.frames, jpeg, disparity_colours(preview), preview.confidence, fps)
+            cam.keep_alive()
+    except KeyboardInterrupt:
+        log("stopping live view (Ctrl-C)")
+    except (TransportError, ProtocolError, PtpError) as exc:
+        raise LiveError(f"live view stopped: {exc}") from exc
+    finally:
+        if cam is not None:
+            try:
+                cam.stop_live_view()
+            except (TransportError, ProtocolError, PtpError):
+                pass
+            cam.close()
+        recorder.close()
+    elapsed = time.monotonic() - started
+    stats.frames_per_s = stats.frames / elapsed if elapsed > 0 else 0.0
+    stats.preview_ms_median = statistics.median(stats.preview_ms) if stats.preview_ms else 0.0
+    return stats
+
+
+def scene_live_view_source(
+    profile_name: str = "paper-70d", scene: str = "paper-a", size_px: tuple[int, int] = (960, 540)
+) -> Callable[[int], bytes]:
+    """Live-view JPEGs of the simulated 70D: the MCA simulator's rendering of `scene` at live-view size.
+
+    Rendered once, on the first frame asked for (the 70D's live view is 960 x 540; the 3:2 rendering is
+    cropped to 16:9 in the middle), then served for every frame.
+    """
+    cache: dict[str, bytes] = {}
+
+    def frame(index: int) -> bytes:
+        if "jpeg" not in cache:
+            from mca.capture.profiles import load_profile
+            from mca.capture.recording import to_srgb8
+            from mca.capture.simulated_shots import render_scene
+
+            profile = load_profile(profile_name)
+            width, height = size_px
+            scale = 2.0 * width / (profile.width_px or 5472)  # the planes come at half the sensor's resolution
+            capture = render_scene(scene, profile, size=min(1.0, scale), seed=1)
+            planes = capture.planes_linear
+            full_h = round(planes.shape[0] * width / planes.shape[1])
+            rgb = cv2.resize(planes, (width, full_h), interpolation=cv2.INTER_AREA)
+            top = max(0, (full_h - height) // 2)
+            rgb = to_srgb8(np.clip(rgb[top : top + height], 0.0, 1.0))
+            ok, encoded = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 85])
+            if not ok:
+                raise RuntimeError("could not encode the simulated live-view frame")
+            cache["jpeg"] = encoded.tobytes()
+        return cache["jpeg"]
+
+    return frame
