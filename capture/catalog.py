@@ -256,6 +256,7 @@ class Catalog:
             " VALUES (?, ?, ?, ?, ?, 'captured')",
             (camera_serial, camera_filename, camera_handle, size_bytes, _now()),
         )
+        assert cur.lastrowid is not None  # an INSERT always has one
         return int(cur.lastrowid)
 
     def mark_downloaded(self, shot_id: int, file_name: str, size_bytes: int, sha256: str) -> None:

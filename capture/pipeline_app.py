@@ -772,8 +772,8 @@ def process_file(
     except OSError as exc:
         try:  # read_raw's checks say what is wrong with the file in words
             read_raw(input_path)
-        except RawReadError as reason:
-            return outcome("failed", reason=str(reason))
+        except RawReadError as described:
+            return outcome("failed", reason=str(described))
         except Exception:
             pass
         return outcome("failed", reason=user_message(input_path, exc))
@@ -783,9 +783,9 @@ def process_file(
         with output_folders.claim_folder(root, planned.name, source) as claim:
             out_dir = claim.final
             if not force:
-                reason = _unchanged_reason(claim.existing_result(), source, settings_key(profile), profile, out_dir)
-                if reason is not None:
-                    return outcome("skipped", out_dir, reason=reason)
+                finished = _unchanged_reason(claim.existing_result(), source, settings_key(profile), profile, out_dir)
+                if finished is not None:
+                    return outcome("skipped", out_dir, reason=finished)
             staging = claim.new_staging()
             try:
                 with read_policy(max_megapixels=max_megapixels, photograph=True):

@@ -1016,7 +1016,7 @@ def _read_tiff(p: Path) -> RawFrame:
     try:
         with tifffile.TiffFile(p) as tf:
             page = tf.pages[0]
-            _check_pixels(p, int(page.imagewidth), int(page.imagelength))
+            _check_pixels(p, int(getattr(page, "imagewidth", 0)), int(getattr(page, "imagelength", 0)))
             arr = page.asarray()
             if arr.ndim == 3 and getattr(page, "planarconfig", None) == tifffile.PLANARCONFIG.SEPARATE:
                 arr = np.moveaxis(arr, 0, -1)

@@ -249,9 +249,7 @@ def profile_from_mapping(data: Mapping[str, Any], source: str = "<profile>") -> 
                 )
             sensor = focal * focus / (focus - focal)
         else:
-            given = _number(
-                lens_table, "sensor_distance_mm", "lens.sensor_distance_mm", source, maximum=MAX_LENS_MM
-            )
+            given = _number(lens_table, "sensor_distance_mm", "lens.sensor_distance_mm", source, maximum=MAX_LENS_MM)
             assert given is not None
             sensor = given
             if sensor <= focal:
