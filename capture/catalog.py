@@ -55,8 +55,9 @@ _TIME_COLUMNS = ("captured_at", "downloaded_at", "processed_at")
 RESERVE_BYTES = 1 << 20
 
 
-class CatalogError(RuntimeError):
-    """A catalog that cannot be used as it is; names the file and what to do."""
+class CatalogError(sqlite3.DatabaseError):
+    """A catalog that cannot be used as it is; names the file and what to do (an `sqlite3.Error`, as callers that
+    guard the catalog expect)."""
 
 
 def _now() -> str:
