@@ -48,7 +48,6 @@ from mca.processing.result import DepthResult
 SUPPORTED_SUFFIXES = frozenset(RAW_EXTENSIONS) | frozenset(IMAGE_EXTENSIONS)  # what `read_raw` reads
 RESULT_NAME = output_folders.RESULT_NAME
 RECORDING_NAME = "recording.rrd"
-RESULTS_FORMAT = 1  # part of the settings key: raise it when the outputs change, to redo finished folders
 MAX_PLY_POINTS = 1_000_000
 LAYER_ORDER = "front-to-back"  # layers/00.png is the nearest plane
 
@@ -642,13 +641,14 @@ def is_finished(out_dir: Path) -> bool:
 
 
 def settings_key(profile: CameraProfile) -> str:
-    """sha256 of what decides the outputs besides the photograph: the profile's values and the results format.
+    """sha256 of what decides the outputs besides the photograph: the profile's values and result.json's
+    `schema_version` (raising it makes reruns redo finished folders).
 
     The version of mca is not part of it: after an upgrade, `--force` recomputes finished folders.
     """
     described = dataclasses.asdict(profile)
     described.pop("source", None)  # where the profile file lies does not change the result
-    payload = {"format": RESULTS_FORMAT, "profile": outputs.json_safe(described)}
+    payload = {"format": RESULT_SCHEMA_VERSION, "profile": outputs.json_safe(described)}
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode("utf-8")).hexdigest()
 
 

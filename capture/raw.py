@@ -726,7 +726,8 @@ def _check_tiff_extent(p: Path, tiff: _Tiff, size: int, kind: str) -> None:
                 continue
             offs = offs if isinstance(offs, tuple) else (offs,)
             lens = lens if isinstance(lens, tuple) else (lens,)
-            end = max((o + n for o, n in zip(offs, lens)), default=0)
+            # a damaged file can give these tags any type (text, rationals): only whole numbers locate data
+            end = max((o + n for o, n in zip(offs, lens) if isinstance(o, int) and isinstance(n, int)), default=0)
             if end > size:
                 raise RawReadError(
                     p,

@@ -293,3 +293,24 @@ def test_ctrl_c_leaves_no_partial_folder(tmp_path):
     else:
         assert proc.returncode == 1 and "interrupted" in err
     assert not list((tmp_path / "out").glob(".*mca-staging*"))
+
+
+def test_a_tiff_whose_strip_tags_are_text_is_refused_not_a_traceback(tmp_path):
+    """Found by the fuzz job: StripOffsets stored as ASCII made the truncation check add text to a number."""
+    path = tmp_path / "odd.tif"
+    tifffile.imwrite(path, np.zeros((20, 30, 3), np.uint16), photometric="rgb")
+    data = bytearray(path.read_bytes())
+    (ifd,) = struct.unpack_from("<I", data, 4)
+    (count,) = struct.unpack_from("<H", data, ifd)
+    for index in range(count):
+        entry = ifd + 2 + 12 * index
+        (tag,) = struct.unpack_from("<H", data, entry)
+        if tag in (0x0111, 0x0117):  # StripOffsets, StripByteCounts
+            struct.pack_into("<H", data, entry + 2, 2)  # now ASCII
+    path.write_bytes(bytes(data))
+    from mca.capture.raw import RawReadError, read_raw
+
+    try:
+        read_raw(path)
+    except RawReadError:
+        pass
