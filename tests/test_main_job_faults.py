@@ -43,7 +43,13 @@ def summary(tmp_path_factory) -> dict:
     if prefix:
         env["MCA_FAULTS_IN_NAMESPACE"] = "1"
     done = subprocess.run(
-        [*prefix, sys.executable, str(DRIVER), "--work", str(tmp_path), "--rounds", str(ROUNDS), "--seed", "13"],
+        [
+            *prefix,
+            sys.executable,
+            str(DRIVER),
+            *("--work", str(tmp_path), "--rounds", str(ROUNDS), "--seed", "13"),
+            *("--tmpfs-mb", str(64 + 16 * ROUNDS)),  # a shot with its outputs and recording: about 5 MB
+        ],
         capture_output=True,
         text=True,
         timeout=60 * max(10, ROUNDS),
