@@ -4,14 +4,18 @@ One driver loop (`run_batch`) serves every way of running: it finds the inputs,
 hands them to a runner (in this process, a spawn-context process pool, or a Dask
 distributed client), keeps at most the runner's capacity in flight, reports
 progress, and returns every file's `FileOutcome`. A bad file never stops the batch;
-finished output folders (result.json present) are skipped unless forced.
+a folder already holding the result of the same photograph with the same settings is
+skipped unless forced. Files that are not photographs to take (FIFOs and other non-regular
+files, anything in a `truth/` folder of `mca simulate`) are skipped with the reason.
 """
 
 from __future__ import annotations
 
 import concurrent.futures
+import errno
 import multiprocessing
 import os
+import stat
 import sys
 import time
 import uuid
@@ -21,6 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
+from mca.capture.output_folders import OutputFolderError, output_name_for, prepare_root
 from mca.capture.pipeline_app import (
     RECORDING_NAME,
     STAGES,
@@ -51,41 +56,84 @@ class Task:
 # --- discovery ------------------------------------------------------------------------------------------------------
 
 
-def _candidates(source: Path) -> list[Path]:
-    if source.is_dir():
-        return sorted(
-            p
-            for p in source.iterdir()
-            if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in SUPPORTED_SUFFIXES
-        )
-    return [source]  # an explicit file is always tried: a wrong one fails with its reason
+TRUTH_FOLDER = "truth"  # where `mca simulate` keeps ground truth: never photographs to process
+TRUTH_REASON = "ground truth written by `mca simulate` (a truth/ folder), not a photograph; skipped"
+
+
+@dataclass
+class Discovery:
+    """What `discover` found: the inputs to process, and the files passed over with the reason."""
+
+    inputs: list[Path] = field(default_factory=list)
+    skipped: list[tuple[Path, str]] = field(default_factory=list)
+
+
+def _non_regular_reason(path: Path) -> str | None:
+    """Why a folder entry with a photograph's suffix is not taken, or None for a regular file."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            return f"{path}: is a symbolic link that loops back on itself; skipped"
+        if path.is_symlink():
+            return f"{path}: is a symbolic link to a missing file; skipped"
+        return f"{path}: cannot be read ({exc.strerror}); skipped"
+    if stat.S_ISREG(mode):
+        return None
+    kind = {stat.S_IFIFO: "a FIFO (named pipe)", stat.S_IFSOCK: "a socket", stat.S_IFDIR: "a folder"}.get(
+        stat.S_IFMT(mode), "a device"
+    )
+    return f"{path}: is {kind}, not a photograph file; skipped"
+
+
+def _candidates(source: Path, found: Discovery) -> list[Path]:
+    if os.path.isdir(source):
+        if source.name == TRUTH_FOLDER:
+            found.skipped.append((source, f"{source}: {TRUTH_REASON}"))
+            return []
+        taken = []
+        for path in sorted(source.iterdir()):
+            if path.name.startswith(".") or path.suffix.lower() not in SUPPORTED_SUFFIXES:
+                continue
+            reason = _non_regular_reason(path)
+            if reason is None:
+                taken.append(path)
+            else:
+                found.skipped.append((path, reason))
+        return taken
+    if source.parent.name == TRUTH_FOLDER:
+        found.skipped.append((source, f"{source}: {TRUTH_REASON}"))
+        return []
+    return [source]  # an explicit file is always tried: a wrong one fails (or is skipped) with its reason
+
+
+def discover(sources: Iterable[str | Path]) -> Discovery:
+    """Input files: explicit files as given, folders' supported files (not recursive, hidden ones skipped);
+    entries that are not regular files and `truth/` folders are listed as skipped, with the reason."""
+    found = Discovery()
+    seen: set[str] = set()
+    for source in sources:
+        for path in _candidates(Path(source), found):
+            key = os.path.realpath(path)  # never raises, even for a symbolic-link loop
+            if key not in seen:
+                seen.add(key)
+                found.inputs.append(path)
+    return found
 
 
 def discover_inputs(sources: Iterable[str | Path]) -> list[Path]:
     """Input files: explicit files as given, folders' supported files (not recursive, hidden ones skipped)."""
-    found: list[Path] = []
-    seen: set[Path] = set()
-    for source in sources:
-        for path in _candidates(Path(source)):
-            key = path.resolve()
-            if key not in seen:
-                seen.add(key)
-                found.append(path)
-    return found
+    return discover(sources).inputs
 
 
-def assign_name(path: Path, taken: dict[str, Path]) -> str:
-    """The output folder name for `path`: its stem, or `<stem>-<ext>` when another input already has that stem."""
-    name = path.stem
-    owner = taken.get(name)
-    if owner is not None and owner.resolve() != path.resolve():
-        name = f"{path.stem}-{path.suffix.lower().lstrip('.')}"
-        index = 2
-        while name in taken and taken[name].resolve() != path.resolve():
-            name = f"{path.stem}-{path.suffix.lower().lstrip('.')}-{index}"
-            index += 1
-    taken.setdefault(name, path)
-    return name
+def assign_name(path: Path, taken: dict[str, Path] | None = None) -> str:
+    """The preferred output folder name for `path`: its stem, made safe (`output_folders.output_name_for`).
+
+    Inputs sharing a stem share the preferred name; `process_file` gives each photograph its own
+    folder (`NAME`, `NAME-2`, ... in the order they are processed), found again by path or content
+    on later runs. `taken` is accepted for compatibility and ignored.
+    """
+    return output_name_for(path)
 
 
 # --- runners --------------------------------------------------------------------------------------------------------
@@ -113,9 +161,11 @@ class _Job:
     pipeline: PipelineFunction | None
     on_stage: Callable[[Task, str], None] | None = None  # progress display, called in this process
     recorder: Any = None  # a live recorder (inline runner only)
+    max_megapixels: float | None = None  # the pixel limit of the inputs (None: capture.raw's default)
 
     def kwargs(self, task: Task) -> dict[str, Any]:
         kwargs: dict[str, Any] = {
+            "max_megapixels": self.max_megapixels,
             "force": self.force,
             "record_path": task.record_path,
             "out_name": task.out_name,
@@ -168,6 +218,11 @@ class InlineRunner:
         return None
 
 
+def _key(task: Task) -> str:
+    """A name for the task unique within its batch (several inputs may share a preferred folder name)."""
+    return f"{task.shot_index}-{task.out_name}"
+
+
 _worker_stage_queue: Any = None  # in a pool worker: where stage announcements go (set by the initializer)
 
 
@@ -205,11 +260,11 @@ class PoolRunner:
             task.input_path,
             self.job.out_root,
             self.job.profile,
-            task.out_name,
+            _key(task),
             **self.job.kwargs(task),
         )
         self.futures[future] = task
-        self.by_key[task.out_name] = task
+        self.by_key[_key(task)] = task
 
     def _drain_stages(self) -> None:
         import queue as queue_module
@@ -239,7 +294,7 @@ class PoolRunner:
         finished = []
         for future in done:
             task = self.futures.pop(future)
-            self.by_key.pop(task.out_name, None)
+            self.by_key.pop(_key(task), None)
             try:
                 finished.append((task, future.result()))
             except concurrent.futures.process.BrokenProcessPool:
@@ -486,12 +541,21 @@ def make_runner(
     pipeline: PipelineFunction | None = None,
     on_stage: Callable[[Task, str], None] | None = None,
     recorder: Any = None,
+    max_megapixels: float | None = None,
 ) -> Runner:
     """The runner for the options: a Dask client for `cluster`, else a process pool, or inline for one worker.
 
     `on_stage(task, stage)` hears each file's stages (not from a Dask cluster).
     """
-    job = _Job(out_root=out_root, profile=profile, force=force, pipeline=pipeline, on_stage=on_stage, recorder=recorder)
+    job = _Job(
+        out_root=out_root,
+        profile=profile,
+        force=force,
+        pipeline=pipeline,
+        on_stage=on_stage,
+        recorder=recorder,
+        max_megapixels=max_megapixels,
+    )
     if cluster:
         return DaskRunner(job, cluster)
     if workers < 1:
@@ -529,6 +593,7 @@ def run_batch(
     progress: Progress | None = None,
     pipeline: PipelineFunction | None = None,
     recorder: Any = None,
+    max_megapixels: float | None = None,
 ) -> BatchReport:
     """Process every input under `sources` into `out_root`; with `watch`, keep processing files as they arrive.
 
@@ -537,15 +602,26 @@ def run_batch(
     With `record`, each file records into `<out>/<name>/recording.rrd`, merged into `record` at the end
     as one recording whose `shot` timeline steps through the files. A live `recorder` (e.g. one
     serving a web viewer) receives every shot; it needs the files processed here, one at a time.
+    A file changed after it was taken (watch mode) is taken again once settled. `max_megapixels`
+    limits the inputs' size (default: `capture.raw.default_max_megapixels()`).
+
+    Raises `BatchError` before anything is processed when a source does not exist or the output
+    folder cannot be created.
     """
     if recorder is not None and (workers > 1 or cluster):
         raise BatchError(
             "a live recorder (--serve) needs the files processed here one at a time: "
             "drop --workers/--cluster, or use --record and open the file afterwards"
         )
-    out_root = Path(out_root).resolve()
-    sources = [Path(s).resolve() for s in sources]  # absolute: cluster workers see the same shared paths
-    out_root.mkdir(parents=True, exist_ok=True)
+    missing = [str(s) for s in sources if not os.path.lexists(s)]
+    if missing:
+        raise BatchError(f"no such file or folder: {', '.join(missing)}; check the path")
+    # absolute: cluster workers see the same shared paths; realpath never raises, even for a symbolic-link loop
+    sources = [Path(os.path.realpath(s)) for s in sources]
+    try:
+        out_root = prepare_root(out_root)
+    except OutputFolderError as exc:
+        raise BatchError(str(exc)) from None
     progress = progress or SilentProgress()
     report = BatchReport()
     runner = make_runner(
@@ -557,44 +633,67 @@ def run_batch(
         pipeline=pipeline,
         on_stage=progress.stage if getattr(progress, "wants_stages", False) else None,
         recorder=recorder,
+        max_megapixels=max_megapixels,
     )
     recording_id = str(uuid.uuid4()) if record is not None else None
     names: dict[str, Path] = {}
-    known: set[Path] = set()
+    known: dict[Path, tuple[int, int] | None] = {}  # path -> (size, mtime) when taken
+    passed_over: set[Path] = set()
+    shots = 0
     sizes: dict[Path, tuple[int, int, float]] = {}
     queue: deque[Task] = deque()
     in_flight = 0
+    busy_names: set[str] = set()
+    flying: list[Task] = []  # submitted, not finished
     last_activity = time.monotonic()
     finished_tasks: list[Task] = []
 
-    def discover() -> None:
-        nonlocal last_activity
+    def signature(path: Path) -> tuple[int, int] | None:
+        try:
+            info = path.stat()
+        except OSError:
+            return None
+        return (info.st_size, info.st_mtime_ns)
+
+    def look() -> None:
+        nonlocal last_activity, shots
         new = False
-        for path in discover_inputs(sources):
-            if path in known:
+        found = discover(sources)
+        for path, reason in found.skipped:
+            if path in passed_over:
                 continue
+            passed_over.add(path)
+            task = Task(path, path.name)
+            outcome = FileOutcome(path, "skipped", out_root, reason=reason)
+            report.outcomes.append(outcome)
+            progress.discovered(len(known) + len(passed_over))
+            progress.finished(task, outcome)
+        for path in found.inputs:
+            if path in known and (not watch or known[path] == signature(path)):
+                continue  # taken already, and not changed since (a re-shot file is taken again)
             if watch and not _stable(path, sizes, settle_s):
                 last_activity = time.monotonic()  # still arriving: keep waiting for it
                 continue
-            known.add(path)
+            known[path] = signature(path)
             name = assign_name(path, names)
             queue.append(
                 Task(
                     path,
                     name,
                     out_root / name / RECORDING_NAME if record else None,
-                    shot_index=len(known) - 1,
+                    shot_index=shots,
                     recording_id=recording_id,
                 )
             )
+            shots += 1
             new = True
         if new:
             last_activity = time.monotonic()
-            progress.discovered(len(known))
+            progress.discovered(len(known) + len(passed_over))
 
     try:
-        discover()
-        if not watch and not known:
+        look()
+        if not watch and not known and not passed_over:
             raise BatchError(
                 "no input files found in "
                 + ", ".join(str(s) for s in sources)
@@ -602,13 +701,21 @@ def run_batch(
             )
         while True:
             while queue and in_flight < runner.capacity:
-                task = queue.popleft()
+                # inputs sharing a folder name go one after the other: the names they get do not depend on timing
+                task = next((t for t in queue if t.out_name not in busy_names), None)
+                if task is None:
+                    break
+                queue.remove(task)
+                busy_names.add(task.out_name)
+                flying.append(task)
                 runner.submit(task)
                 progress.started(task)
                 in_flight += 1
             if in_flight:
                 for task, outcome in runner.wait(poll_interval_s if watch else 0.5):
                     in_flight -= 1
+                    busy_names.discard(task.out_name)
+                    flying.remove(task)
                     report.outcomes.append(outcome)
                     finished_tasks.append(task)
                     progress.finished(task, outcome)
@@ -618,10 +725,11 @@ def run_batch(
             else:
                 time.sleep(poll_interval_s)
             if watch:
-                discover()
+                look()
     except KeyboardInterrupt:
         report.interrupted = True
-        for task in runner.cancel() + list(queue):
+        runner.cancel()
+        for task in flying + list(queue):  # the files in flight too: their results were not kept
             report.outcomes.append(
                 runner_failed(
                     out_root, task, "interrupted (Ctrl-C) before it finished; rerun the same command to finish it"
@@ -647,12 +755,15 @@ def runner_failed(out_root: Path, task: Task, reason: str) -> FileOutcome:
 
 
 def merge_batch_recordings(tasks: list[Task], outcomes: list[FileOutcome], out_path: Path) -> Path | None:
-    """Merge the per-file recordings of the finished (done or skipped) files, in input order, into `out_path`."""
-    ok = {o.input_path for o in outcomes if o.status != "failed"}
-    paths = sorted(
-        (t.record_path for t in tasks if t.input_path in ok and t.record_path and t.record_path.is_file()),
-        key=lambda p: p.parent.name,
-    )
+    """Merge the per-file recordings of the finished (done or skipped) files, in folder-name order, into
+    `out_path`. Each is read from the folder the file's outputs went to (`FileOutcome.output_dir`)."""
+    recorded = {t.input_path: t.record_path.name for t in tasks if t.record_path is not None}
+    found = {
+        o.output_dir / recorded[o.input_path]
+        for o in outcomes
+        if o.status != "failed" and o.input_path in recorded and (o.output_dir / recorded[o.input_path]).is_file()
+    }
+    paths = sorted(found, key=lambda p: p.parent.name)
     if not paths:
         return None
     from mca.capture.recording import merge_recordings
@@ -692,20 +803,32 @@ def print_summary(report: BatchReport, console: Any = None) -> None:
     )
     if report.recording is not None:
         console.print(f"recording: {report.recording}", highlight=False)
+    passed_over = [o for o in report.outcomes if o.status == "skipped" and not _finished_before(o)]
+    if passed_over:
+        print("skipped files (not taken as photographs):", file=sys.stderr)
+        for outcome in passed_over:
+            print(f"  {outcome.reason}", file=sys.stderr)
     if report.failed:
         print("failed files:", file=sys.stderr)
         for outcome in report.failed:
             print(f"  {outcome.reason}", file=sys.stderr)
 
 
+def _finished_before(outcome: FileOutcome) -> bool:
+    """A skip because the result is already there (the routine case), not because the file was passed over."""
+    return (outcome.reason or "").startswith("already finished")
+
+
 __all__ = [
     "BatchError",
     "BatchReport",
+    "Discovery",
     "LineProgress",
     "RichProgress",
     "SilentProgress",
     "Task",
     "assign_name",
+    "discover",
     "discover_inputs",
     "make_runner",
     "print_summary",

@@ -104,8 +104,15 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
         raise ConfigError(path, f"is not valid TOML: {exc}") from None
 
 
-def _relative_to(path_text: str, base: Path) -> Path:
-    path = Path(path_text).expanduser()
+def _relative_to(path_text: str, base: Path, source: Path | None = None, key: str | None = None) -> Path:
+    if "\0" in path_text:
+        raise ConfigError(source or base, "a path cannot hold a NUL character", key)
+    try:
+        path = Path(path_text).expanduser()
+    except RuntimeError:  # "~name" of a user this machine does not know
+        raise ConfigError(
+            source or base, f"cannot expand {path_text.split('/')[0]!r}: no such user's home folder", key
+        ) from None
     return path if path.is_absolute() else (base / path)
 
 
@@ -124,9 +131,9 @@ def validate_value(path: Path, key: str, value: Any) -> Any:
     base = path.parent
     if key == "profile":
         text = _check_str(path, key, value)
-        return str(_relative_to(text, base)) if _looks_like_path(text) else text
+        return str(_relative_to(text, base, path, key)) if _looks_like_path(text) else text
     if key == "output_dir":
-        return _relative_to(_check_str(path, key, value), base)
+        return _relative_to(_check_str(path, key, value), base, path, key)
     if key == "camera":
         text = _check_str(path, key, value)
         if text in ("auto", "sim"):

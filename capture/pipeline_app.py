@@ -1,17 +1,27 @@
 """One photograph in, one finished output folder out: read the file, run the depth pipeline, write every output.
 
 `process_file` is the unit of work of `mca process`, of the local process pool and of a
-Dask cluster alike: it takes only picklable arguments, writes under `out_root/<stem>/`
+Dask cluster alike: it takes only picklable arguments, writes under `out_root/<name>/`
 and never raises for a bad input file (it returns a failed `FileOutcome` naming the file).
 A folder counts as finished when its `result.json` exists; that file is written last.
+The folder name, the per-folder lock, staging and replace-then-delete are
+`capture/output_folders.py`: a result is keyed by the input's content (sha256) and the
+settings, so a changed photograph is processed again and an unchanged one skipped, and a
+run that fails (a full disk, Ctrl-C) leaves the previous result as it was.
 What each output holds is described in docs/outputs.md.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import datetime as _dt
+import errno
+import hashlib
+import json
 import math
+import os
+import re
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -20,16 +30,23 @@ from typing import Any
 
 import numpy as np
 
-from mca.capture import api, outputs
+from mca.capture import api, output_folders, outputs
 from mca.capture.api import LoadedInput, read_input  # the input's own facts live in capture/api.py
-from mca.capture.raw import IMAGE_EXTENSIONS, RAW_EXTENSIONS
+from mca.capture.raw import (
+    IMAGE_EXTENSIONS,
+    RAW_EXTENSIONS,
+    NotARegularFileError,
+    RawReadError,
+    read_policy,
+    read_raw,
+)
 from mca.processing.camera import CameraProfile
 from mca.processing.colour import CameraColour
 from mca.processing.pinhole import SCENE_FRAME, PinholeCamera
 from mca.processing.result import DepthResult
 
 SUPPORTED_SUFFIXES = frozenset(RAW_EXTENSIONS) | frozenset(IMAGE_EXTENSIONS)  # what `read_raw` reads
-RESULT_NAME = "result.json"
+RESULT_NAME = output_folders.RESULT_NAME
 RECORDING_NAME = "recording.rrd"
 MAX_PLY_POINTS = 1_000_000
 LAYER_ORDER = "front-to-back"  # layers/00.png is the nearest plane
@@ -612,12 +629,101 @@ class _StageTimer:
 
 
 def output_dir_for(input_path: Path, out_root: Path, out_name: str | None = None) -> Path:
-    return Path(out_root) / (out_name or Path(input_path).stem)
+    """The folder an input is planned to get: OUT/<safe name>; `process_file` may pick `<name>-2`, ... when that
+    name belongs to a different photograph (the outcome says where the outputs went)."""
+    name = output_folders.safe_folder_name(out_name) if out_name else output_folders.output_name_for(input_path)
+    return Path(out_root) / name
 
 
 def is_finished(out_dir: Path) -> bool:
     """An output folder is finished when its result.json exists (it is written last)."""
     return (out_dir / RESULT_NAME).is_file()
+
+
+def settings_key(profile: CameraProfile) -> str:
+    """sha256 of what decides the outputs besides the photograph: the profile's values and result.json's
+    `schema_version` (raising it makes reruns redo finished folders).
+
+    The version of mca is not part of it: after an upgrade, `--force` recomputes finished folders.
+    """
+    described = dataclasses.asdict(profile)
+    described.pop("source", None)  # where the profile file lies does not change the result
+    payload = {"format": RESULT_SCHEMA_VERSION, "profile": outputs.json_safe(described)}
+    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode("utf-8")).hexdigest()
+
+
+def _unchanged_reason(
+    document: dict[str, Any] | None, source: output_folders.SourceId, key: str, profile: CameraProfile, folder: Path
+) -> str | None:
+    """Why the finished result in `folder` can stand for this input, or None when it must be made again."""
+    if document is None:
+        return None
+    recorded = document.get("source")
+    if isinstance(recorded, dict):
+        if recorded.get("sha256") == source.sha256 and document.get("settings_sha256") == key:
+            return "already finished for this photograph and settings; use --force to redo"
+        return None
+    try:  # a result.json of an earlier mca names no content: trust it while the input is older and the profile same
+        written_ns = (folder / RESULT_NAME).stat().st_mtime_ns
+    except OSError:
+        return None
+    if document.get("profile") == profile.name and source.mtime_ns <= written_ns:
+        return "already finished (by an earlier mca, same profile, input unchanged since); use --force to redo"
+    return None
+
+
+def _stamp_result(path: Path, source: output_folders.SourceId, key: str) -> None:
+    """Add what the result was made from to result.json: the input's resolved path, sha256 and size, the settings."""
+    document = json.loads(path.read_text(encoding="utf-8"))
+    document["source"] = {"path": source.path, "sha256": source.sha256, "size_bytes": source.size_bytes}
+    document["settings_sha256"] = key
+    outputs.write_json(path, document)
+
+
+_OPENCV_TEXT = re.compile(r"in function '([^']+)'")
+
+
+def user_message(input_path: Path, exc: BaseException) -> str:
+    """What to tell the user about a failed file: the file, the cause in words, what to do; never a raw
+    library assertion."""
+    try:
+        import cv2
+
+        opencv_error: type[BaseException] | None = cv2.error
+    except ImportError:  # pragma: no cover
+        opencv_error = None
+    if opencv_error is not None and isinstance(exc, opencv_error):
+        match = _OPENCV_TEXT.search(str(exc))
+        where = f" (in {match.group(1)})" if match else ""
+        return (
+            f"{input_path}: an image operation failed inside OpenCV{where}; the image may be damaged, too small or "
+            "of an unusual shape. Check that it opens in an image viewer; if it does, report this file"
+        )
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        where = f" ({exc.filename})" if exc.filename else ""
+        return (
+            f"{input_path}: the disk is full{where}; nothing finished was lost (the previous result, if any, is "
+            "kept). Free some space and rerun"
+        )
+    if isinstance(exc, MemoryError):
+        return f"{input_path}: ran out of memory; process it with fewer --workers or on a machine with more memory"
+    if isinstance(exc, OSError) and exc.strerror:
+        where = f": {exc.filename}" if exc.filename else ""
+        return f"{input_path}: {exc.strerror}{where}"
+    message = str(exc) or type(exc).__name__
+    if str(input_path) not in message:
+        message = f"{input_path}: {type(exc).__name__}: {message}"
+    return message
+
+
+def _staged_record_path(record_path: str | Path | None, planned: Path, final: Path, staging: Path) -> str | Path | None:
+    """A per-file recording meant for the output folder is written into the staging folder with the rest."""
+    if record_path is None:
+        return None
+    parent = os.path.realpath(Path(record_path).parent)
+    if parent in (os.path.realpath(planned), os.path.realpath(final)):
+        return staging / Path(record_path).name
+    return record_path
 
 
 def process_file(
@@ -633,47 +739,76 @@ def process_file(
     shot_index: int = 0,
     recording_id: str | None = None,
     recorder: Any = None,
+    max_megapixels: float | None = None,
 ) -> FileOutcome:
-    """Process one photograph into `out_root/<stem>/` (or `out_root/<out_name>/`); never raises for a bad file.
+    """Process one photograph into `out_root/<name>/`; never raises for a bad file.
 
-    Skips a finished folder unless `force`. With `record_path`, records the shot with the rerun
-    recorder into that .rrd file, as shot number `shot_index` of the recording `recording_id`
-    (files of one batch share it, so their merged recording is one timeline of shots). A live
-    `recorder` (a `capture.recording.RerunRecorder` kept open by the caller, e.g. one serving a
-    viewer or a tethered session) is used instead and left open. `pipeline` replaces
+    <name> is the input's stem made safe (or `out_name`), or `<name>-2`, ... when that folder holds
+    the result of a different photograph. A folder already holding the result of this photograph
+    (same content) with the same settings is skipped unless `force`; otherwise the outputs are
+    written into a hidden staging folder and swapped in when complete, so a failure leaves the
+    previous result in place. One run at a time works on a folder: another waits for it.
+    Non-regular files (FIFOs, devices) are skipped; images that cannot be an MCA photograph
+    or exceed `max_megapixels` (default `capture.raw.default_max_megapixels()`) fail with the reason.
+
+    With `record_path`, records the shot with the rerun recorder into that .rrd file, as shot
+    number `shot_index` of the recording `recording_id` (files of one batch share it, so their
+    merged recording is one timeline of shots). A live `recorder` (a
+    `capture.recording.RerunRecorder` kept open by the caller, e.g. one serving a viewer or a
+    tethered session) is used instead and left open. `pipeline` replaces
     `processing.pipeline.run_pipeline` (tests); `on_stage(name)` is called as each of `STAGES` finishes.
     """
     started = time.perf_counter()
     input_path = Path(input_path)
-    out_dir = output_dir_for(input_path, Path(out_root), out_name)
-    if is_finished(out_dir) and not force:
-        return FileOutcome(
-            input_path,
-            "skipped",
-            out_dir,
-            time.perf_counter() - started,
-            reason="already finished (result.json exists); use --force to redo",
-        )
+    planned = output_dir_for(input_path, Path(out_root), out_name)
+
+    def outcome(status: str, out_dir: Path = planned, **fields: Any) -> FileOutcome:
+        return FileOutcome(input_path, status, out_dir, time.perf_counter() - started, **fields)
+
     try:
-        regions = _process(
-            input_path,
-            out_dir,
-            profile,
-            record_path,
-            pipeline,
-            on_stage,
-            shot_index=shot_index,
-            recording_id=recording_id,
-            live_recorder=recorder,
-        )
+        source = output_folders.source_identity(input_path)
+    except NotARegularFileError as exc:
+        return outcome("skipped", reason=str(exc))
+    except OSError as exc:
+        try:  # read_raw's checks say what is wrong with the file in words
+            read_raw(input_path)
+        except RawReadError as described:
+            return outcome("failed", reason=str(described))
+        except Exception:
+            pass
+        return outcome("failed", reason=user_message(input_path, exc))
+    out_dir = planned
+    try:
+        root = output_folders.prepare_root(out_root)
+        with output_folders.claim_folder(root, planned.name, source) as claim:
+            out_dir = claim.final
+            if not force:
+                finished = _unchanged_reason(claim.existing_result(), source, settings_key(profile), profile, out_dir)
+                if finished is not None:
+                    return outcome("skipped", out_dir, reason=finished)
+            staging = claim.new_staging()
+            try:
+                with read_policy(max_megapixels=max_megapixels, photograph=True):
+                    regions = _process(
+                        input_path,
+                        staging,
+                        profile,
+                        _staged_record_path(record_path, planned, out_dir, staging),
+                        pipeline,
+                        on_stage,
+                        shot_index=shot_index,
+                        recording_id=recording_id,
+                        live_recorder=recorder,
+                    )
+                _stamp_result(staging / RESULT_NAME, source, settings_key(profile))
+                claim.commit(staging)
+            finally:
+                claim.discard(staging)  # gone after a commit; after a failure the previous result stays
     except (KeyboardInterrupt, SystemExit):
         raise
     except Exception as exc:  # one bad file must never stop a batch: report it, keep going
-        message = str(exc) or type(exc).__name__
-        if str(input_path) not in message:
-            message = f"{input_path}: {type(exc).__name__}: {message}"
-        return FileOutcome(input_path, "failed", out_dir, time.perf_counter() - started, reason=message)
-    return FileOutcome(input_path, "done", out_dir, time.perf_counter() - started, regions=regions)
+        return outcome("failed", out_dir, reason=user_message(input_path, exc))
+    return outcome("done", out_dir, regions=regions)
 
 
 def _process(
@@ -734,6 +869,7 @@ def _process(
 
 
 __all__ = [
+    "RESULT_NAME",
     "SUPPORTED_SUFFIXES",
     "FileOutcome",
     "LoadedInput",
@@ -743,5 +879,7 @@ __all__ = [
     "process_file",
     "read_input",
     "scene_points",
+    "settings_key",
     "upsample_nearest",
+    "user_message",
 ]

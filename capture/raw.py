@@ -9,15 +9,28 @@ PNG/PPM) images as sRGB and linearised with the IEC 61966-2-1 formula.
 Every failure to read a file is a `RawReadError` that names the file, the
 reason and what to do; exceptions from LibRaw or the image decoders never
 escape.
+
+Hostile files are refused before they are decoded: only regular files are
+opened (a FIFO would block), and an image whose header declares more pixels
+than the limit (`read_policy`, default 100 MP, `MCA_MAX_MEGAPIXELS` in the
+environment) is an `ImageTooLargeError` instead of a 10 GiB allocation. In
+photograph mode (what `mca process` uses) an image that cannot be an MCA
+photograph is a `NotAPhotographError`: one colour channel, three identical
+channels, float samples outside 0..1 (a depth map in mm) or not finite, or
+fewer than 16 pixels on a side.
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
+import errno
 import math
 import mmap
 import os
+import stat
 import struct
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -65,6 +78,86 @@ class RawReadError(Exception):
 
 class UnknownBodyError(RawReadError):
     """The photograph was read, but its camera body has no sensor profile."""
+
+
+class NotARegularFileError(RawReadError):
+    """A FIFO, socket, device or folder where a photograph file was expected: never opened for reading."""
+
+
+class ImageTooLargeError(RawReadError):
+    """The image declares more pixels than the limit (a decompression bomb, or a limit set too low)."""
+
+
+class NotAPhotographError(RawReadError):
+    """The file decodes, but cannot be an MCA photograph (ground truth, a grey image, a map in mm, too small)."""
+
+
+# --------------------------------------------------------------------------
+# What a read accepts
+# --------------------------------------------------------------------------
+
+DEFAULT_MAX_MEGAPIXELS = 100.0  # 5x a 20 MP EOS 70D frame; a 20 MP shot needs about 0.8 GiB to process
+MAX_MEGAPIXELS_ENV = "MCA_MAX_MEGAPIXELS"
+MIN_SIDE_PX = 16  # the smallest image side (of the planes) worth a disparity search
+FLOAT_RANGE = (-0.05, 4.0)  # linear float samples beyond this are not light (a depth map in mm, disparities)
+_BYTES_PER_PIXEL_LIMIT = 8  # 16-bit RGBA: no image file of N pixels needs more than 8 N bytes (+ headers)
+
+
+def parse_megapixels(text: str | float, what: str = MAX_MEGAPIXELS_ENV) -> float:
+    """A pixel limit in megapixels, checked: a positive finite number."""
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what}: {text!r} is not a number of megapixels (e.g. 100)") from None
+    if not math.isfinite(value) or value <= 0:
+        raise ValueError(f"{what}: {text!r} must be a positive number of megapixels")
+    return value
+
+
+def default_max_megapixels() -> float:
+    """The pixel limit when none is given: `MCA_MAX_MEGAPIXELS` from the environment, else 100."""
+    text = os.environ.get(MAX_MEGAPIXELS_ENV)
+    return parse_megapixels(text) if text else DEFAULT_MAX_MEGAPIXELS
+
+
+@dataclass(frozen=True)
+class ReadPolicy:
+    """What `read_raw` accepts: at most `max_pixels`; with `photograph`, only what can be an MCA photograph."""
+
+    max_pixels: int
+    photograph: bool = False
+
+
+_POLICY: contextvars.ContextVar[ReadPolicy | None] = contextvars.ContextVar("mca_read_policy", default=None)
+
+
+def current_policy() -> ReadPolicy:
+    policy = _POLICY.get()
+    return policy if policy is not None else ReadPolicy(int(default_max_megapixels() * 1e6))
+
+
+@contextlib.contextmanager
+def read_policy(*, max_megapixels: float | None = None, photograph: bool = False) -> Iterator[ReadPolicy]:
+    """Within the block, `read_raw` refuses images over `max_megapixels` and, with `photograph`, anything that
+    cannot be an MCA photograph (how `mca process` reads its inputs)."""
+    limit = default_max_megapixels() if max_megapixels is None else parse_megapixels(max_megapixels, "max megapixels")
+    token = _POLICY.set(ReadPolicy(int(limit * 1e6), photograph))
+    try:
+        yield _POLICY.get()  # type: ignore[misc]
+    finally:
+        _POLICY.reset(token)
+
+
+def _check_pixels(p: Path, width: int, height: int, what: str = "") -> None:
+    limit = current_policy().max_pixels
+    if width * height > limit:
+        raise ImageTooLargeError(
+            p,
+            f"declares {width} x {height} pixels{what} ({width * height / 1e6:.0f} MP), over the limit of "
+            f"{limit / 1e6:g} MP; it was not decoded",
+            f"If it is a genuine photograph, raise the limit (mca process --max-megapixels, or "
+            f"{MAX_MEGAPIXELS_ENV}); a small file declaring this many pixels is a decompression bomb",
+        )
 
 
 @dataclass(frozen=True)
@@ -161,10 +254,75 @@ def read_raw(path: str | os.PathLike[str]) -> RawFrame:
     head = _check_file(p)
     kind = _detect_format(p, head)
     if kind in ("jpeg", "png", "ppm"):
-        return _read_8bit_style(p, kind)
-    if kind == "tiff":
-        return _read_tiff(p)
-    return _read_with_libraw(p, kind)
+        frame = _read_8bit_style(p, kind)
+    elif kind == "tiff":
+        frame = _read_tiff(p)
+    else:
+        frame = _read_with_libraw(p, kind)
+    if current_policy().photograph:
+        check_photograph_planes(p, frame.planes)
+    return frame
+
+
+def check_photograph_planes(p: Path, planes: np.ndarray) -> None:
+    """Raise `NotAPhotographError` unless (H, W, 3) linear planes can be an MCA photograph: big enough, with
+    finite samples, not one value everywhere, and not three identical channels (a grey image)."""
+    height, width = planes.shape[:2]
+    if min(height, width) < MIN_SIDE_PX:
+        raise NotAPhotographError(
+            p,
+            f"is too small for depth recovery: {width} x {height} pixels (colour planes), "
+            f"at least {MIN_SIDE_PX} on each side are needed",
+            "Pass the full-size photograph",
+        )
+    if not np.isfinite(planes).all():
+        raise NotAPhotographError(
+            p, "has samples that are not finite (NaN or infinity)", "Pass the photograph, not a computed map"
+        )
+    first = planes[..., 0]
+    if np.array_equal(first, planes[..., 1]) and np.array_equal(first, planes[..., 2]):
+        if float(first.min()) == float(first.max()):
+            raise NotAPhotographError(
+                p, f"has one value in every pixel ({float(first.min()):g}): no image content", "Check the exposure"
+            )
+        raise NotAPhotographError(
+            p,
+            "has three identical colour channels (a grey image): an MCA photograph shows the scene through three "
+            "colour filters",
+            "Pass the colour photograph from the camera, not a grey or converted copy",
+        )
+
+
+def _refuse_source_samples(p: Path, arr: np.ndarray) -> None:
+    """In photograph mode: refuse decoded samples that cannot be a photograph (one channel, floats not in 0..1)."""
+    if not current_policy().photograph:
+        return
+    channels = 1 if arr.ndim == 2 else int(arr.shape[-1]) if arr.ndim == 3 else 0
+    if channels < 3:
+        raise NotAPhotographError(
+            p,
+            f"has {'one colour channel' if channels <= 1 else 'two channels (grey and alpha)'} "
+            f"({arr.dtype} samples): a grey image, a label map or a depth map, not an MCA colour photograph",
+            "Pass the colour photograph from the camera; ground truth written by `mca simulate` is not an input",
+        )
+    if arr.dtype.kind == "f":
+        finite = np.isfinite(arr)
+        if not finite.any():
+            raise NotAPhotographError(p, "has no finite sample (all NaN)", "Pass a photograph")
+        if not finite.all():
+            raise NotAPhotographError(
+                p,
+                f"has {int((~finite).sum())} samples that are NaN or infinite: a computed map, not a photograph",
+                "Pass the photograph from the camera",
+            )
+        low, high = float(arr.min()), float(arr.max())
+        if low < FLOAT_RANGE[0] or high > FLOAT_RANGE[1]:
+            raise NotAPhotographError(
+                p,
+                f"has float samples from {low:g} to {high:g}, not linear light in 0..1 "
+                "(a depth map in mm or a disparity map?)",
+                "Pass the photograph; export float TIFFs as linear values in 0..1",
+            )
 
 
 def require_known_body(frame: RawFrame, known: Iterable[str] | None = None) -> SensorSpec:
@@ -196,13 +354,54 @@ srgb_to_linear = srgb_decode  # IEC 61966-2-1 decoding (processing/colour.py)
 # --------------------------------------------------------------------------
 
 
+_FILE_KINDS = {
+    stat.S_IFIFO: "a FIFO (named pipe)",
+    stat.S_IFSOCK: "a socket",
+    stat.S_IFCHR: "a character device",
+    stat.S_IFBLK: "a block device",
+    stat.S_IFDIR: "a folder",
+}
+
+
+def regular_file_descriptor(path: str | os.PathLike[str]) -> int:
+    """A descriptor of `path` opened for reading without ever blocking (as a FIFO would).
+
+    Raises `NotARegularFileError` for FIFOs, sockets, devices and folders, `OSError` when it cannot
+    be opened (missing, permission denied, a symbolic-link loop: errno ELOOP).
+    """
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            kind = _FILE_KINDS.get(stat.S_IFMT(mode), "not a regular file")
+            raise NotARegularFileError(
+                path,
+                f"is {kind}, not a photograph file",
+                "Skipped: give regular image files (CR2, DNG, TIFF, PNG, JPEG)",
+            )
+        os.set_blocking(fd, True)
+        return fd
+    except BaseException:
+        os.close(fd)
+        raise
+
+
 def _open_binary(path: Path) -> Any:
-    return open(path, "rb")
+    return os.fdopen(regular_file_descriptor(path), "rb")
 
 
 def _check_file(p: Path) -> bytes:
     """First bytes of the file, after checking it exists, is a file, is readable and is not empty."""
     if not p.exists():
+        if p.is_symlink():
+            try:
+                os.stat(p)
+            except OSError as e:
+                if e.errno == errno.ELOOP:
+                    raise RawReadError(
+                        p, "is a symbolic link that loops back on itself", "Fix or remove the link"
+                    ) from None
+            raise RawReadError(p, "is a symbolic link to a file that does not exist", "Fix or remove the link")
         raise RawReadError(
             p, "no such file", "Check the path; the file may not have been downloaded from the camera yet"
         )
@@ -219,6 +418,15 @@ def _check_file(p: Path) -> bytes:
         ) from None
     except OSError as e:
         raise RawReadError(p, f"cannot be read: {e.strerror or e}", "Check the disk and copy the file again") from None
+    size = p.stat().st_size
+    limit = current_policy().max_pixels * _BYTES_PER_PIXEL_LIMIT + (64 << 20)
+    if size > limit:
+        raise ImageTooLargeError(
+            p,
+            f"is {size / 2**20:.0f} MiB, more than any image within the limit of "
+            f"{current_policy().max_pixels / 1e6:g} MP needs",
+            f"If it is a genuine photograph, raise the limit (mca process --max-megapixels, or {MAX_MEGAPIXELS_ENV})",
+        )
     if not head:
         raise RawReadError(
             p,
@@ -226,6 +434,46 @@ def _check_file(p: Path) -> bytes:
             "The transfer from the camera probably failed; download or take the photograph again",
         )
     return head
+
+
+_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+def image_size_px(data: bytes, kind: str) -> tuple[int, int] | None:
+    """(width, height) an image file declares in its header (PNG IHDR, JPEG SOF, PPM), without decoding it;
+    None when the header does not say (a damaged file: the decoder then fails on its own)."""
+    if kind == "png":
+        if len(data) >= 24 and data[12:16] == b"IHDR":
+            return struct.unpack(">II", data[16:24])
+        return None
+    if kind == "jpeg":
+        at = 2
+        while at + 9 <= len(data) and data[at] == 0xFF:
+            marker = data[at + 1]
+            if marker == 0xFF:
+                at += 1
+                continue
+            if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+                at += 2
+                continue
+            length = struct.unpack(">H", data[at + 2 : at + 4])[0]
+            if marker in _JPEG_SOF:
+                height, width = struct.unpack(">HH", data[at + 5 : at + 9])
+                return width, height
+            if marker in (0xDA, 0xD9) or length < 2:
+                return None
+            at += 2 + length
+        return None
+    if kind == "ppm":
+        tokens: list[bytes] = []
+        for line in data[:1024].split(b"\n"):
+            tokens += line.split(b"#", 1)[0].split()
+            if len(tokens) >= 3:
+                break
+        if len(tokens) >= 3 and tokens[1].isdigit() and tokens[2].isdigit():
+            return int(tokens[1]), int(tokens[2])
+        return None
+    return None
 
 
 def _magic_kind(head: bytes) -> str | None:
@@ -478,7 +726,8 @@ def _check_tiff_extent(p: Path, tiff: _Tiff, size: int, kind: str) -> None:
                 continue
             offs = offs if isinstance(offs, tuple) else (offs,)
             lens = lens if isinstance(lens, tuple) else (lens,)
-            end = max((o + n for o, n in zip(offs, lens)), default=0)
+            # a damaged file can give these tags any type (text, rationals): only whole numbers locate data
+            end = max((o + n for o, n in zip(offs, lens) if isinstance(o, int) and isinstance(n, int)), default=0)
             if end > size:
                 raise RawReadError(
                     p,
@@ -516,6 +765,10 @@ def _read_tiff_structure(p: Path, kind: str) -> _Tiff:
     if not tiff.ifds:
         raise RawReadError(p, f"has no image directory (damaged {kind.upper()})", "Copy the file from the camera again")
     _check_tiff_extent(p, tiff, size, kind)
+    for ifd in tiff.ifds + [i for i in _sub_ifds(tiff) if i is not None]:
+        width, height = _first(ifd.tags.get(0x0100)), _first(ifd.tags.get(0x0101))
+        if isinstance(width, int) and isinstance(height, int):
+            _check_pixels(p, width, height)
     return tiff
 
 
@@ -555,9 +808,11 @@ def _read_with_libraw(p: Path, kind: str) -> RawFrame:
     try:
         with rawpy.imread(str(p)) as raw:
             return _frame_from_libraw(p, kind, raw, meta)
+    except RawReadError:
+        raise
     except rawpy.LibRawError as e:
         raise _libraw_failure(p, kind, e) from None
-    except (OSError, ValueError, MemoryError) as e:
+    except Exception as e:  # a hostile file can make the decoder fail in any way: say so, never a traceback
         raise RawReadError(
             p,
             f"could not be decoded as {kind.upper()} ({type(e).__name__}: {e})",
@@ -576,6 +831,8 @@ def _levels(raw: Any) -> tuple[np.ndarray, float]:
 
 
 def _frame_from_libraw(p: Path, kind: str, raw: Any, meta: dict[str, Any]) -> RawFrame:
+    sizes = raw.sizes  # from the header: known before LibRaw unpacks (allocates) anything
+    _check_pixels(p, int(sizes.raw_width), int(sizes.raw_height), " in its raw data")
     black, white = _levels(raw)
     desc = raw.color_desc.decode("ascii", "replace")
     pattern = raw.raw_pattern
@@ -683,14 +940,19 @@ def _demosaic_raw(frame: RawFrame) -> np.ndarray:
 # --------------------------------------------------------------------------
 
 
-def _to_rgb(arr: np.ndarray) -> np.ndarray:
-    if arr.ndim == 2:
-        return np.repeat(arr[..., None], 3, axis=-1)
-    if arr.ndim == 3 and arr.shape[-1] >= 3:
-        return arr[..., :3]
-    if arr.ndim == 3 and arr.shape[-1] == 1:
-        return np.repeat(arr, 3, axis=-1)
-    raise ValueError(f"unexpected image shape {arr.shape}")
+def _to_rgb(arr: np.ndarray, p: Path | None = None) -> np.ndarray:
+    if 0 not in arr.shape:
+        if arr.ndim == 2:
+            return np.repeat(arr[..., None], 3, axis=-1)
+        if arr.ndim == 3 and arr.shape[-1] >= 3:
+            return arr[..., :3]
+        if arr.ndim == 3 and arr.shape[-1] in (1, 2):  # grey, grey + alpha
+            return np.repeat(arr[..., :1], 3, axis=-1)
+    raise RawReadError(
+        p or Path("?"),
+        f"holds an image of shape {arr.shape}, not rows x columns (x colours)",
+        "The file is damaged or not a photograph; export it again as RGB",
+    )
 
 
 SRGB_FILE_COLOUR = CameraColour(source="the file is sRGB-encoded: its decoded values are linear sRGB already")
@@ -720,16 +982,24 @@ def _read_8bit_style(p: Path, kind: str) -> RawFrame:
         raise RawReadError(p, f"cannot be read: {e.strerror or e}", "Check the file and its permissions") from None
     if kind == "jpeg" and b"\xff\xd9" not in data[-65536:]:
         raise RawReadError(p, "is a truncated JPEG (no end-of-image marker)", "Copy or export the image again")
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    declared = image_size_px(data, kind)
+    if declared is not None:
+        _check_pixels(p, *declared)
+    try:
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error:
+        img = None
     if img is None:
         raise RawReadError(
             p,
             f"could not be decoded as {kind.upper()}; the file is damaged or truncated",
             "Export or copy the image again",
         )
+    _check_pixels(p, int(img.shape[1]), int(img.shape[0]))
+    _refuse_source_samples(p, img)
     if img.ndim == 3 and img.shape[-1] >= 3:
         img = cv2.cvtColor(img[..., :3], cv2.COLOR_BGR2RGB)
-    rgb = _to_rgb(img)
+    rgb = _to_rgb(img, p)
     scale = 255.0 if rgb.dtype == np.uint8 else 65535.0
     linear = srgb_to_linear(rgb.astype(np.float32) / np.float32(scale))
     tiff = None
@@ -747,14 +1017,18 @@ def _read_tiff(p: Path) -> RawFrame:
     try:
         with tifffile.TiffFile(p) as tf:
             page = tf.pages[0]
+            _check_pixels(p, int(getattr(page, "imagewidth", 0)), int(getattr(page, "imagelength", 0)))
             arr = page.asarray()
             if arr.ndim == 3 and getattr(page, "planarconfig", None) == tifffile.PLANARCONFIG.SEPARATE:
                 arr = np.moveaxis(arr, 0, -1)
-    except (tifffile.TiffFileError, ValueError, OSError, MemoryError) as e:
+    except RawReadError:
+        raise
+    except Exception as e:  # tifffile fails on hostile files with many exception types
         raise RawReadError(
             p, f"could not be decoded as TIFF ({e})", "Export the image again as an uncompressed 16-bit RGB TIFF"
         ) from None
-    rgb = _to_rgb(arr)
+    _refuse_source_samples(p, arr)
+    rgb = _to_rgb(arr, p)
     colour = LINEAR_TIFF_COLOUR
     if rgb.dtype == np.uint16:
         linear = rgb.astype(np.float32) / np.float32(65535)  # 16-bit TIFF: linear

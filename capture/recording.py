@@ -47,6 +47,7 @@ Usage analytics of rerun stay off: see `disable_rerun_analytics`.
 
 from __future__ import annotations
 
+import atexit
 import json
 import math
 import os
@@ -464,7 +465,10 @@ class RerunRecorder:
 
     Each recorder owns its `rr.RecordingStream` (no global rerun state), so several coexist.
     `serve=True` starts `rerun --serve-web` bound to `bind` (127.0.0.1 unless told otherwise) and
-    streams to it; `viewer_url` then says where to point a browser.
+    streams to it; `viewer_url` then says where to point a browser. Ports left out are 9876 (data)
+    and 9090 (web page) when free, else free ones; a port asked for that is in use is an error,
+    never a false claim to serve. The server is stopped by `close()`, at interpreter exit, and (on
+    Linux) by the kernel when this process dies, even by SIGKILL.
     """
 
     def __init__(
@@ -474,8 +478,8 @@ class RerunRecorder:
         application_id: str = "mca",
         serve: bool = False,
         bind: str = "127.0.0.1",
-        grpc_port: int = 9876,
-        web_port: int = 9090,
+        grpc_port: int | None = None,
+        web_port: int | None = None,
         display_megapixels: float = DISPLAY_MEGAPIXELS,
         recording_id: str | None = None,
     ) -> None:
@@ -489,6 +493,7 @@ class RerunRecorder:
         self.recording_path = Path(recording_path) if recording_path is not None else None
         self.display_megapixels = display_megapixels
         self.viewer_url: str | None = None
+        self.ports: tuple[int, int] | None = None  # (data, web page) when serving
         self._server: subprocess.Popen[bytes] | None = None
         self._stream = rr.RecordingStream(application_id, recording_id=recording_id)
         self._stream.set_log_tick_enabled(False)
@@ -515,25 +520,48 @@ class RerunRecorder:
 
     # -- serving ---------------------------------------------------------------------------------------------------
 
-    def _start_server(self, bind: str, grpc_port: int, web_port: int) -> str:
+    def _start_server(self, bind: str, grpc_port: int | None, web_port: int | None) -> str:
         exe = rerun_executable()
         if exe is None:
             raise RuntimeError("--serve needs the `rerun` command of rerun-sdk; reinstall with `pip install rerun-sdk`")
+        grpc_port = choose_port(bind, grpc_port, DEFAULT_GRPC_PORT, "the data port (--grpc-port)")
+        web_port = choose_port(bind, web_port, DEFAULT_WEB_PORT, "the web viewer port (--web-port)", {grpc_port})
         command = [exe, "--serve-web", "--bind", bind, "--port", str(grpc_port), "--web-viewer-port", str(web_port)]
         self._server = subprocess.Popen(
-            command,
+            die_with_parent(command),
             env=child_environment(),
             stdin=subprocess.DEVNULL,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
         )
+        atexit.register(self._stop_server)
         host = "127.0.0.1" if bind in ("0.0.0.0", "::", "127.0.0.1") else bind
         grpc_url = f"rerun+http://{host}:{grpc_port}/proxy"
-        _wait_for_port(host, grpc_port, self._server, timeout_s=10.0)
+        try:
+            for port in (grpc_port, web_port):
+                _wait_for_port(host, port, self._server, timeout_s=10.0)
+        except BaseException:
+            self._stop_server()
+            raise
         from urllib.parse import quote
 
         self.viewer_url = f"http://{host}:{web_port}/?url={quote(grpc_url, safe='')}"
+        self.ports = (grpc_port, web_port)
         return grpc_url
+
+    def _stop_server(self) -> None:
+        """Stop the viewer server this recorder started (idempotent)."""
+        server, self._server = self._server, None
+        if server is None:
+            return
+        atexit.unregister(self._stop_server)
+        if server.poll() is None:
+            server.terminate()
+            try:
+                server.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                server.kill()
+                server.wait(timeout=5)
 
     # -- the Recorder protocol -------------------------------------------------------------------------------------
 
@@ -881,16 +909,11 @@ class RerunRecorder:
         if self._closed:
             return
         self._closed = True
-        self._stream.flush()
-        self._stream.disconnect()
-        if self._server is not None:
-            # The browser keeps what it received; give a late viewer a moment, then stop the server we started.
-            self._server.terminate()
-            try:
-                self._server.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                self._server.kill()
-            self._server = None
+        try:
+            self._stream.flush()
+            self._stream.disconnect()
+        finally:
+            self._stop_server()  # even when the file could not be written (a full disk); the browser keeps its data
 
     def __enter__(self) -> RerunRecorder:
         return self
@@ -899,21 +922,80 @@ class RerunRecorder:
         self.close()
 
 
+DEFAULT_GRPC_PORT = 9876  # rerun's own defaults
+DEFAULT_WEB_PORT = 9090
+
+
+def port_in_use(host: str, port: int) -> bool:
+    """True when `port` cannot be bound on `host` (another program listens there)."""
+    import socket
+
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
+        try:
+            probe.bind((host, port))
+        except OSError:
+            return True
+    return False
+
+
+def free_port(host: str) -> int:
+    """A port the system says is free on `host` now."""
+    import socket
+
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
+        probe.bind((host, 0))
+        return int(probe.getsockname()[1])
+
+
+def choose_port(
+    host: str, wanted: int | None, default: int, what: str, taken: set[int] | frozenset = frozenset()
+) -> int:
+    """`wanted` if free (else an error naming it), or `default` if free, or a free port."""
+    if wanted is not None:
+        if wanted in taken or port_in_use(host, wanted):
+            raise RuntimeError(
+                f"port {wanted} on {host} is already in use (another `mca --serve`, `mca view --web` or rerun "
+                f"viewer?); choose another for {what}, or leave it out to take a free one"
+            )
+        return wanted
+    if default not in taken and not port_in_use(host, default):
+        return default
+    while True:
+        port = free_port(host)
+        if port not in taken:
+            return port
+
+
+def die_with_parent(command: list[str]) -> list[str]:
+    """`command` run so that the kernel stops it when this process dies, however it dies (Linux `setpriv`)."""
+    setpriv = shutil.which("setpriv") if sys.platform.startswith("linux") else None
+    if setpriv is None:
+        return command
+    return [setpriv, "--pdeathsig", "TERM", "--", *command]
+
+
 def _wait_for_port(host: str, port: int, process: subprocess.Popen[bytes], timeout_s: float) -> None:
+    """Wait until the server `process` listens on `port`; the port was free before it started, so a listener
+    there is the server (checked to be still running), not somebody else's."""
     import socket
 
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if process.poll() is not None:
             raise RuntimeError(
-                f"the rerun server exited (code {process.returncode}); is port {port} already in use? "
-                "Choose another with --grpc-port / --web-port"
+                f"the rerun server exited (code {process.returncode}) before listening on {host}:{port}; "
+                "is the port in use? Choose another"
             )
         try:
             with socket.create_connection((host, port), timeout=0.2):
-                return
+                pass
         except OSError:
             time.sleep(0.1)
+            continue
+        if process.poll() is None:
+            return
     raise RuntimeError(f"the rerun server did not listen on {host}:{port} within {timeout_s:.0f} s")
 
 

@@ -9,6 +9,17 @@ from typing import Any
 
 CHANNELS = ("red", "green", "blue")
 
+# Plausible ranges: a value outside them is a typo or a hostile file, and would only fail later with a
+# ZeroDivisionError or an overflow in every photograph processed with the profile.
+MAX_LENS_MM = 10_000.0  # focal length, lens-sensor distance (d_ls): 10 m
+MAX_FOCUS_DISTANCE_MM = 1_000_000.0  # 1 km: beyond it the focus is infinity for any lens here
+MAX_APERTURE_MM = 1_000.0  # aperture and filter diameters, filter centres
+MIN_BASELINE_MM = 0.01  # d_a of the widest filter pair: below it there is no disparity to measure
+F_NUMBER_RANGE = (0.5, 1_000.0)
+MIN_PIXEL_PITCH_MM = 0.0001
+MAX_IMAGE_SIDE_PX = 1_000_000
+MAX_CROSSTALK = 1_000.0
+
 
 class ProfileError(ValueError):
     """A profile that cannot be used; names the profile source and the offending field."""
@@ -108,7 +119,14 @@ def _section(data: Mapping[str, Any], name: str, source: str, required: bool = T
 
 
 def _number(
-    table: Mapping[str, Any], key: str, field: str, source: str, *, required: bool = True, positive: bool = True
+    table: Mapping[str, Any],
+    key: str,
+    field: str,
+    source: str,
+    *,
+    required: bool = True,
+    positive: bool = True,
+    maximum: float | None = None,
 ) -> float | None:
     if key not in table:
         if required:
@@ -119,6 +137,8 @@ def _number(
         raise ProfileError(field, f"must be a finite number, got {value!r}", source)
     if positive and value <= 0:
         raise ProfileError(field, f"must be positive, got {value!r}", source)
+    if maximum is not None and abs(value) > maximum:
+        raise ProfileError(field, f"{value!r} is beyond the plausible {maximum:g} (check the unit: mm)", source)
     return float(value)
 
 
@@ -132,6 +152,10 @@ def _point(table: Mapping[str, Any], key: str, field: str, source: str) -> tuple
         or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)
     ):
         raise ProfileError(field, f"must be [x_mm, y_mm] (two numbers), got {value!r}", source)
+    if max(abs(value[0]), abs(value[1])) > MAX_APERTURE_MM:
+        raise ProfileError(
+            field, f"{list(value)!r} lies beyond the plausible {MAX_APERTURE_MM:g} mm from the axis", source
+        )
     return (float(value[0]), float(value[1]))
 
 
@@ -148,8 +172,11 @@ def _crosstalk(table: Mapping[str, Any], source: str) -> tuple[tuple[float, floa
             not isinstance(row, (list, tuple))
             or len(row) != 3
             or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in row)
+            or any(abs(v) > MAX_CROSSTALK for v in row)
         ):
-            raise ProfileError(field, f"each row must hold three numbers, got {row!r}", source)
+            raise ProfileError(
+                field, f"each row must hold three numbers of at most {MAX_CROSSTALK:g}, got {row!r}", source
+            )
         rows.append((float(row[0]), float(row[1]), float(row[2])))
     a = rows
     det = (
@@ -176,23 +203,33 @@ def profile_from_mapping(data: Mapping[str, Any], source: str = "<profile>") -> 
     if not isinstance(model, str) or not model.strip():
         raise ProfileError("camera.model", "missing or empty", source)
     pitch = _number(camera, "pixel_pitch_mm", "camera.pixel_pitch_mm", source, required=False)
-    if pitch is not None and pitch > 0.1:
+    if pitch is not None and not MIN_PIXEL_PITCH_MM <= pitch <= 0.1:
         raise ProfileError(
             "camera.pixel_pitch_mm", f"{pitch} mm is not a photosite pitch (give mm, e.g. 0.004109)", source
         )
     size = []
     for key in ("width_px", "height_px"):
         value = camera.get(key)
-        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value <= 0):
-            raise ProfileError(f"camera.{key}", f"must be a positive integer, got {value!r}", source)
+        if value is not None and (
+            isinstance(value, bool) or not isinstance(value, int) or not 0 < value <= MAX_IMAGE_SIDE_PX
+        ):
+            raise ProfileError(
+                f"camera.{key}", f"must be a positive integer of at most {MAX_IMAGE_SIDE_PX}, got {value!r}", source
+            )
         size.append(value)
 
     lens_table = _section(data, "lens", source, required=False)
     lens = None
     if lens_table is not None:
-        focal = _number(lens_table, "focal_length_mm", "lens.focal_length_mm", source)
+        focal = _number(lens_table, "focal_length_mm", "lens.focal_length_mm", source, maximum=MAX_LENS_MM)
         assert focal is not None
         f_number = _number(lens_table, "f_number", "lens.f_number", source, required=False)
+        if f_number is not None and not F_NUMBER_RANGE[0] <= f_number <= F_NUMBER_RANGE[1]:
+            raise ProfileError(
+                "lens.f_number",
+                f"{f_number!r} is not an f-number ({F_NUMBER_RANGE[0]:g} to {F_NUMBER_RANGE[1]:g})",
+                source,
+            )
         has_focus = "focus_distance_mm" in lens_table
         has_sensor = "sensor_distance_mm" in lens_table
         if has_focus == has_sensor:
@@ -200,7 +237,9 @@ def profile_from_mapping(data: Mapping[str, Any], source: str = "<profile>") -> 
                 "lens.focus_distance_mm", "give exactly one of focus_distance_mm and sensor_distance_mm", source
             )
         if has_focus:
-            focus = _number(lens_table, "focus_distance_mm", "lens.focus_distance_mm", source)
+            focus = _number(
+                lens_table, "focus_distance_mm", "lens.focus_distance_mm", source, maximum=MAX_FOCUS_DISTANCE_MM
+            )
             assert focus is not None
             if focus <= focal:
                 raise ProfileError(
@@ -210,7 +249,7 @@ def profile_from_mapping(data: Mapping[str, Any], source: str = "<profile>") -> 
                 )
             sensor = focal * focus / (focus - focal)
         else:
-            given = _number(lens_table, "sensor_distance_mm", "lens.sensor_distance_mm", source)
+            given = _number(lens_table, "sensor_distance_mm", "lens.sensor_distance_mm", source, maximum=MAX_LENS_MM)
             assert given is not None
             sensor = given
             if sensor <= focal:
@@ -223,10 +262,22 @@ def profile_from_mapping(data: Mapping[str, Any], source: str = "<profile>") -> 
 
     ap = _section(data, "aperture", source)
     assert ap is not None
-    filter_diameter = _number(ap, "filter_diameter_mm", "aperture.filter_diameter_mm", source)
+    filter_diameter = _number(ap, "filter_diameter_mm", "aperture.filter_diameter_mm", source, maximum=MAX_APERTURE_MM)
     assert filter_diameter is not None
     centres = {c: _point(ap, c, f"aperture.{c}", source) for c in CHANNELS}
-    diameter = _number(ap, "diameter_mm", "aperture.diameter_mm", source, required=False)
+    baseline = max(
+        math.hypot(centres[a][0] - centres[b][0], centres[a][1] - centres[b][1])
+        for a, b in (("red", "green"), ("red", "blue"), ("green", "blue"))
+    )
+    if baseline < MIN_BASELINE_MM:
+        raise ProfileError(
+            "aperture.red",
+            f"the filter centres lie at most {baseline:g} mm apart (red {list(centres['red'])}, green "
+            f"{list(centres['green'])}, blue {list(centres['blue'])}): with no baseline d_a there is no disparity; "
+            f"give centres at least {MIN_BASELINE_MM} mm apart",
+            source,
+        )
+    diameter = _number(ap, "diameter_mm", "aperture.diameter_mm", source, required=False, maximum=MAX_APERTURE_MM)
     if diameter is None and lens is not None and lens.f_number is not None:
         diameter = lens.focal_length_mm / lens.f_number
     if diameter is not None:

@@ -258,7 +258,7 @@ def test_same_stem_gets_separate_folders(tmp_path, profile):
     make_png(tmp_path / "x.png")
     make_tiff(tmp_path / "x.tiff")
     report = run_batch([tmp_path / "x.png", tmp_path / "x.tiff"], tmp_path / "out", profile, pipeline=fake_pipeline)
-    assert sorted(o.output_dir.name for o in report.outcomes) == ["x", "x-tiff"]
+    assert {o.input_path.suffix: o.output_dir.name for o in report.outcomes} == {".png": "x", ".tiff": "x-2"}
     assert all(o.status == "done" for o in report.outcomes)
 
 

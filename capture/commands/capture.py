@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import typer
 
@@ -125,6 +126,8 @@ def capture(
     problems = 0
     try:
         session.connect()
+        if process:
+            process_unfinished(session)
         if tethered:
             typer.echo("waiting for shots from the camera's shutter button; Ctrl-C to stop", err=True)
             session.tethered(stop.is_set)
@@ -146,6 +149,21 @@ def capture(
         raise typer.Exit(1)
     if interrupted and not tethered:
         raise typer.Exit(EXIT_INTERRUPTED)
+
+
+def process_unfinished(session: Any) -> None:
+    """Process the shots an earlier run downloaded but did not finish processing (killed, a full disk): their
+    files are on disk, the catalog lists them as downloaded or failed after the download (issue 13)."""
+    from mca.capture.tether import RAW_SUFFIXES
+
+    for row in session.catalog.unprocessed():
+        path = session.out_dir / row.file_name
+        if path.suffix.upper() not in RAW_SUFFIXES:
+            continue  # the JPEG of a RAW+JPEG pair is kept, not processed
+        typer.echo(f"  processing {row.file_name} (shot {row.id}), left unprocessed by an earlier run", err=True)
+        if row.id not in session.shot_ids:
+            session.shot_ids.append(row.id)
+        session._process(row.id, path)
 
 
 def register(app: typer.Typer) -> None:

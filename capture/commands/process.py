@@ -43,6 +43,16 @@ def report_document(report) -> dict:
     )
 
 
+def stop_on_sigterm() -> None:
+    """Make SIGTERM (systemctl stop, kill) end this process like Ctrl-C does: through its `finally` blocks."""
+    import signal
+
+    def interrupted(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    signal.signal(signal.SIGTERM, interrupted)
+
+
 def register(app: typer.Typer) -> None:
     @app.command("process")
     def process(
@@ -103,6 +113,13 @@ def register(app: typer.Typer) -> None:
         as_json: bool = typer.Option(
             False, "--json", help="Print one JSON object (every file's outcome and totals) instead of the table."
         ),
+        max_megapixels: float | None = typer.Option(
+            None,
+            "--max-megapixels",
+            metavar="MP",
+            help="Refuse inputs larger than MP megapixels before decoding them "
+            "(default: $MCA_MAX_MEGAPIXELS, else 100).",
+        ),
     ) -> None:
         """Process photographs into OUT/<stem>/: depth.tiff, regions.png, result.json, all_in_focus.png, layers/,
         scene.ply and scene.glb (docs/outputs.md). Finished folders are skipped unless --force; exits 1 when any
@@ -124,6 +141,21 @@ def register(app: typer.Typer) -> None:
         except ProfileError as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(2) from None
+        from mca.capture.raw import default_max_megapixels, parse_megapixels
+
+        try:
+            max_megapixels = (
+                default_max_megapixels()
+                if max_megapixels is None
+                else parse_megapixels(max_megapixels, "--max-megapixels")
+            )
+        except ValueError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(2) from None
+        missing = [str(p) for p in inputs if not p.exists() and not p.is_symlink()]
+        if missing:
+            typer.echo(f"error: no such file or folder: {', '.join(missing)}; check the path", err=True)
+            raise typer.Exit(2)
         if out.exists() and not out.is_dir():
             typer.echo(f"error: --out {out} is a file; give a folder for the outputs", err=True)
             raise typer.Exit(2)
@@ -148,43 +180,49 @@ def register(app: typer.Typer) -> None:
                 raise typer.Exit(2)
             from mca.capture.recording import RerunRecorder
 
-            live = RerunRecorder(None, serve=True, bind=bind)
+            stop_on_sigterm()  # a service stop must reach the `finally` below, or the viewer server is orphaned
+            try:
+                live = RerunRecorder(None, serve=True, bind=bind)
+            except RuntimeError as exc:
+                typer.echo(f"error: {exc}", err=True)
+                raise typer.Exit(2) from None
             typer.echo(f"rerun viewer: {live.viewer_url}", err=True)
         try:
-            report = run_batch(
-                list(inputs),
-                out,
-                camera_profile,
-                workers=workers,
-                cluster=cluster,
-                force=force,
-                record=record,
-                watch=watch,
-                watch_timeout_s=watch_timeout,
-                poll_interval_s=poll_interval,
-                settle_s=settle,
-                progress=progress,
-                recorder=live,
-            )
-        except BatchError as exc:
-            typer.echo(f"error: {exc}", err=True)
-            if live is not None:
-                live.close()
-            raise typer.Exit(2) from None
-        if as_json:
-            typer.echo(json.dumps(report_document(report), indent=2))
-        else:
-            print_summary(report)
-        if live is not None:
-            import time
-
-            typer.echo(f"still serving the viewer at {live.viewer_url}; Ctrl-C to stop", err=True)
             try:
-                while True:
-                    time.sleep(1.0)
-            except KeyboardInterrupt:
-                pass
-            finally:
+                report = run_batch(
+                    list(inputs),
+                    out,
+                    camera_profile,
+                    workers=workers,
+                    cluster=cluster,
+                    force=force,
+                    record=record,
+                    watch=watch,
+                    watch_timeout_s=watch_timeout,
+                    poll_interval_s=poll_interval,
+                    settle_s=settle,
+                    progress=progress,
+                    recorder=live,
+                    max_megapixels=max_megapixels,
+                )
+            except BatchError as exc:
+                typer.echo(f"error: {exc}", err=True)
+                raise typer.Exit(2) from None
+            if as_json:
+                typer.echo(json.dumps(report_document(report), indent=2))
+            else:
+                print_summary(report)
+            if live is not None and not report.interrupted:
+                import time
+
+                typer.echo(f"still serving the viewer at {live.viewer_url}; Ctrl-C to stop", err=True)
+                try:
+                    while True:
+                        time.sleep(1.0)
+                except KeyboardInterrupt:
+                    pass
+        finally:
+            if live is not None:
                 live.close()
         if report.failed:
             raise typer.Exit(1)

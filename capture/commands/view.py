@@ -37,7 +37,8 @@ def no_display_advice(path: Path) -> str:
         f"    (the viewer comes with `pip install rerun-sdk=={sdk}`, the version that wrote it)\n"
         f"  - or serve the web viewer from here:  mca view {path} --web\n"
         f"    then open the printed http://127.0.0.1:... address in a browser on this machine,\n"
-        f"    or through an SSH tunnel: ssh -L 9090:127.0.0.1:9090 -L 9876:127.0.0.1:9876 THIS-HOST"
+        f"    or through an SSH tunnel: ssh -L 9090:127.0.0.1:9090 -L 9876:127.0.0.1:9876 THIS-HOST\n"
+        f"    (the ports it prints, if 9090 and 9876 were taken)"
     )
 
 
@@ -57,13 +58,24 @@ def register(app: typer.Typer) -> None:
         bind: str = typer.Option(
             "127.0.0.1", "--bind", help="Address the web viewer listens on; 0.0.0.0 opens it to the network."
         ),
-        web_port: int = typer.Option(9090, "--web-port", help="HTTP port of the web viewer."),
-        grpc_port: int = typer.Option(9876, "--grpc-port", help="Port the web viewer fetches the data from."),
+        web_port: int | None = typer.Option(
+            None, "--web-port", help="HTTP port of the web viewer (default 9090, or a free one if that is taken)."
+        ),
+        grpc_port: int | None = typer.Option(
+            None, "--grpc-port", help="Port the web viewer fetches the data from (default 9876, or a free one)."
+        ),
     ) -> None:
         """Open recordings in the rerun viewer (native window, or a web viewer on 127.0.0.1 with --web)."""
         import subprocess
 
-        from mca.capture.recording import child_environment, disable_rerun_analytics, rerun_executable
+        from mca.capture.recording import (
+            DEFAULT_GRPC_PORT,
+            DEFAULT_WEB_PORT,
+            child_environment,
+            choose_port,
+            disable_rerun_analytics,
+            rerun_executable,
+        )
 
         missing = [str(p) for p in recordings if not p.is_file()]
         if missing:
@@ -79,7 +91,16 @@ def register(app: typer.Typer) -> None:
             )
             raise typer.Exit(2)
         disable_rerun_analytics()
-        command = viewer_command(exe, recordings, web=web, bind=bind, web_port=web_port, grpc_port=grpc_port)
+        if web:
+            try:
+                grpc_port = choose_port(bind, grpc_port, DEFAULT_GRPC_PORT, "--grpc-port")
+                web_port = choose_port(bind, web_port, DEFAULT_WEB_PORT, "--web-port", {grpc_port})
+            except RuntimeError as exc:
+                typer.echo(f"error: {exc}", err=True)
+                raise typer.Exit(2) from None
+        command = viewer_command(
+            exe, recordings, web=web, bind=bind, web_port=web_port or DEFAULT_WEB_PORT, grpc_port=grpc_port or 0
+        )
         if web:
             host = "127.0.0.1" if bind in ("0.0.0.0", "::") else bind
             typer.echo(

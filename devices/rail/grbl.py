@@ -39,6 +39,10 @@ _ALARM_HINT = (
 )
 
 
+# Half the 0.001 mm resolution of the G-code sent: a target this close beyond an end counts as that end.
+TRAVEL_EDGE_TOLERANCE_MM = 0.0005
+
+
 class GrblRail(Rail):
     """A GRBL 1.1 controller driving one axis (X) of a bench rail.
 
@@ -97,6 +101,10 @@ class GrblRail(Rail):
         feed = self.default_feed_mm_per_min if feed_mm_per_min is None else feed_mm_per_min
         if not feed > 0:
             raise RailCommandError(self.port, f"feed {feed} mm/min is not positive", _ERROR_HINTS[22])
+        if -TRAVEL_EDGE_TOLERANCE_MM <= position_mm < 0.0:
+            position_mm = 0.0  # a rounding error at the home end (e.g. -1e-9 from a sweep's arithmetic)
+        elif self.travel_mm < position_mm <= self.travel_mm + TRAVEL_EDGE_TOLERANCE_MM:
+            position_mm = self.travel_mm  # 300.0000001 on a 300 mm rail is the end of the rail
         if not 0.0 <= position_mm <= self.travel_mm:
             raise RailCommandError(
                 self.port,
