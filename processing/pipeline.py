@@ -235,8 +235,12 @@ def run_pipeline(
         )
 
     with timer.stage("refine"):
-        refinement = _no_refinement(sketch, surface_disparity) if params.refine is None else refine_regions(
-            stack_bands(feature_bands(small)), aperture, sketch.labels, surface_disparity, params.refine
+        refinement = (
+            _no_refinement(sketch, surface_disparity)
+            if params.refine is None
+            else refine_regions(
+                stack_bands(feature_bands(small)), aperture, sketch.labels, surface_disparity, params.refine
+            )
         )
         sketch = _refined_sketch(sketch, refinement, params.sketch.slant_px)
         recorder.record(
@@ -291,7 +295,8 @@ def run_pipeline(
 
 
 def _no_refinement(sketch: Sketch, disparity: np.ndarray) -> Refinement:
-    return Refinement(disparity, {r.id: None for r in sketch.regions}, {r.id: 0.0 for r in sketch.regions})
+    ids = [r.id for r in sketch.regions]
+    return Refinement(disparity, dict.fromkeys(ids), dict.fromkeys(ids, (0.0, 0.0, 0.0)), dict.fromkeys(ids, 0.0))
 
 
 def _refined_sketch(sketch: Sketch, refinement: Refinement, slant_px: float) -> Sketch:
@@ -300,8 +305,8 @@ def _refined_sketch(sketch: Sketch, refinement: Refinement, slant_px: float) -> 
     for r in sketch.regions:
         plane = refinement.planes.get(r.id)
         if plane is None:
-            a, b, c = r.plane
-            plane = (a, b, c + refinement.offsets_px.get(r.id, 0.0))
+            da, db, dc = refinement.corrections.get(r.id, (0.0, 0.0, 0.0))
+            plane = (r.plane[0] + da, r.plane[1] + db, r.plane[2] + dc)
         a, b, c = plane
         x, y = r.centroid_xy
         if not r.slanted:  # a fronto-parallel region: one level, the plane's at the centroid
@@ -334,8 +339,9 @@ def _model_at_processing(
     surfaces' planes shifted by the region's refinement in a curved one."""
     planes = surfaces.planes  # type: ignore[attr-defined]
     region_of = sketch.superpixel_region
-    shifted = planes.copy()
-    shifted[:, 2] += np.array([refinement.offsets_px.get(int(region_of[i]), 0.0) for i in range(planes.shape[0])])
+    shifted = planes + np.array(
+        [refinement.corrections.get(int(region_of[i]), (0.0, 0.0, 0.0)) for i in range(planes.shape[0])]
+    )
     planes_proc = np.stack([rescale_plane(p, factor) for p in shifted]) if factor > 1 else shifted
     model = plane_map(superpixels_full, planes_proc)
     count = int(labels_full.max()) + 1

@@ -38,7 +38,8 @@ class RefineParams:
     coarse_step_px: float = 0.5
     fine_step_px: float = 0.15  # second pass: 5 offsets this far apart around each region's first-pass result
     cell_px: int = 32  # side of the cells whose minima vote
-    planar_tolerance_px: float = 0.3  # median |surfaces - region plane| of a planar region
+    planar_tolerance_px: float = 0.25  # 90th percentile of |surfaces - region plane| of a planar region
+    min_cells_for_slope: int = 6  # a curved region's correction gets a slope only with this many voting cells
     window_px: int = 9
     noise_floor: float = 2e-3
 
@@ -49,11 +50,17 @@ class Refinement:
 
     disparity_px: np.ndarray  # (H, W) float32
     planes: dict[int, tuple[float, float, float] | None]  # region id -> plane (a, b, c) if planar, else None
-    offsets_px: dict[int, float]  # region id -> constant shift applied (curved regions)
+    corrections: dict[int, tuple[float, float, float]]  # region id -> plane added to its surfaces (curved regions)
+    offsets_px: dict[int, float]  # region id -> correction at its centroid
 
 
 def _median_by_label(labels: np.ndarray, values: np.ndarray, count: int) -> np.ndarray:
     """Median of `values` per label (flat arrays); inf for empty labels."""
+    return _quantile_by_label(labels, values, count, 0.5)
+
+
+def _quantile_by_label(labels: np.ndarray, values: np.ndarray, count: int, q: float) -> np.ndarray:
+    """The q-quantile (lower) of `values` per label (flat arrays); inf for empty labels."""
     order = np.lexsort((values, labels))
     sorted_labels = labels[order]
     sorted_values = values[order]
@@ -61,8 +68,8 @@ def _median_by_label(labels: np.ndarray, values: np.ndarray, count: int) -> np.n
     ends = np.searchsorted(sorted_labels, np.arange(count), side="right")
     out = np.full(count, np.inf)
     has = ends > starts
-    middle = (starts + ends - 1) // 2
-    out[has] = sorted_values[middle[has]]
+    pick = starts + np.floor(q * (ends - starts - 1)).astype(np.int64)
+    out[has] = sorted_values[pick[has]]
     return out
 
 
@@ -140,7 +147,7 @@ def refine_regions(
     levels = _median_by_label(lab, model.ravel(), count)
     planes[flat] = np.stack([np.zeros(flat.sum()), np.zeros(flat.sum()), levels[flat]], axis=1)
     plane_model = planes[labels, 0] * xs + planes[labels, 1] * ys + planes[labels, 2]
-    deviation = _median_by_label(lab, np.abs(model - plane_model).ravel(), count)
+    deviation = _quantile_by_label(lab, np.abs(model - plane_model).ravel(), count, 0.9)
     planar = deviation <= params.planar_tolerance_px
     planar[0] = False
     current = np.where(planar[labels], plane_model, model).astype(np.float32)
@@ -162,6 +169,9 @@ def refine_regions(
     bin_region = used // n_cells
     bin_x = np.bincount(bins, wflat * np.tile(np.arange(w, dtype=np.float64), h), n_bins)[used] / wsum[used]
     bin_y = np.bincount(bins, wflat * np.repeat(np.arange(h, dtype=np.float64), w), n_bins)[used] / wsum[used]
+    areas = np.maximum(np.bincount(lab, minlength=count), 1)
+    cx_region = np.bincount(lab, np.tile(np.arange(w, dtype=np.float64), h), count) / areas
+    cy_region = np.bincount(lab, np.repeat(np.arange(h, dtype=np.float64), w), count) / areas
 
     near_occluder = owner != labels
 
@@ -172,63 +182,52 @@ def refine_regions(
         costs = cost_at(bands, aperture, maps, params.window_px, params.noise_floor)
         return np.stack([np.bincount(bins, (c.ravel() * wflat), n_bins)[used] for c in costs], axis=1)
 
-    def solve(minima: np.ndarray, strength: np.ndarray, base: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per region: a new plane (a, b, c) and the constant shift, from its cells' minima."""
-        new = np.zeros((count, 3))
-        shift = np.zeros(count)
+    tilt = planar & ~flat  # slanted planar regions: the plane itself is refined
+    free = ~planar  # curved regions: a planar correction of their surfaces
+
+    def solve(minima: np.ndarray, strength: np.ndarray) -> np.ndarray:
+        """Per region: the correction (a, b, c) to add to the model, fitted to its cells' minima."""
+        correction = np.zeros((count, 3))
         for rid in range(1, count):
             sel = (bin_region == rid) & (strength > 0)
             if not sel.any():
                 continue
             vote = strength[sel] * wsum[used][sel]
-            if planar[rid] and not flat[rid] and sel.sum() >= 4:
-                cx, cy = bin_x[sel], bin_y[sel]
-                values = base[rid, 0] * cx + base[rid, 1] * cy + base[rid, 2] + minima[sel]
-                new[rid] = _robust_plane(cx, cy, values, vote)
+            if (tilt[rid] and sel.sum() >= 4) or (free[rid] and sel.sum() >= params.min_cells_for_slope):
+                correction[rid] = _robust_plane(bin_x[sel], bin_y[sel], minima[sel], vote)
             else:
-                shift[rid] = _robust_level(minima[sel], vote)
-        return new, shift
+                correction[rid, 2] = _robust_level(minima[sel], vote)
+        return correction
 
     coarse = np.arange(-params.search_px, params.search_px + 1e-9, params.coarse_step_px)
     minima, strength = _parabola_minima(curves(current, coarse), coarse)
-    new_planes, shift = solve(minima, strength, planes)
-    first = np.where(planar[:, None] & ~flat[:, None], new_planes, 0.0)
-    # second pass around each region's first-pass result
-    after_first = _apply(current, labels, planar & ~flat, first, shift, xs, ys)
+    first = solve(minima, strength)
+    after_first = _apply(current, labels, first, xs, ys)
     fine = np.arange(-2, 3) * params.fine_step_px
     minima, strength = _parabola_minima(curves(after_first, fine), fine)
-    base_planes = np.where(planar[:, None] & ~flat[:, None], first, planes)
-    base_planes[:, 2] += np.where(planar & ~flat, 0.0, shift)
-    new_planes, shift2 = solve(minima, strength, base_planes)
-    final = _apply(after_first, labels, planar & ~flat, new_planes, shift2, xs, ys)
-    total_shift = shift + shift2
+    second = solve(minima, strength)
+    final = _apply(after_first, labels, second, xs, ys)
+    total = first + second
 
     result_planes: dict[int, tuple[float, float, float] | None] = {}
+    offsets: dict[int, float] = {}
     for rid in range(1, count):
-        if planar[rid] and not flat[rid]:
-            result_planes[rid] = tuple(float(v) for v in new_planes[rid])  # type: ignore[assignment]
-        elif planar[rid]:
-            result_planes[rid] = (0.0, 0.0, float(levels[rid] + total_shift[rid]))
+        if planar[rid]:
+            plane = planes[rid] + total[rid]
+            result_planes[rid] = (float(plane[0]), float(plane[1]), float(plane[2]))
         else:
             result_planes[rid] = None
-    return Refinement(final, result_planes, {rid: float(total_shift[rid]) for rid in range(1, count)})
+        offsets[rid] = float(total[rid, 0] * cx_region[rid] + total[rid, 1] * cy_region[rid] + total[rid, 2])
+    corrections = {rid: (float(total[rid, 0]), float(total[rid, 1]), float(total[rid, 2])) for rid in range(1, count)}
+    return Refinement(final, result_planes, corrections, offsets)
 
 
 def _apply(
-    current: np.ndarray,
-    labels: np.ndarray,
-    replace: np.ndarray,
-    planes: np.ndarray,
-    shift: np.ndarray,
-    xs: np.ndarray,
-    ys: np.ndarray,
+    current: np.ndarray, labels: np.ndarray, correction: np.ndarray, xs: np.ndarray, ys: np.ndarray
 ) -> np.ndarray:
-    """Regions in `replace` take their new plane; the others are shifted by their constant."""
-    out = current + shift[labels].astype(np.float32)
-    if replace.any():
-        plane_map = planes[labels, 0] * xs + planes[labels, 1] * ys + planes[labels, 2]
-        out = np.where(replace[labels], plane_map, out)
-    return out.astype(np.float32)
+    """The model plus each region's correction plane."""
+    c = correction.astype(np.float32)
+    return (current + c[labels, 0] * xs + c[labels, 1] * ys + c[labels, 2]).astype(np.float32)
 
 
 def _occluders_own_contours(maps: np.ndarray, near_occluder: np.ndarray, reach_px: int) -> np.ndarray:
