@@ -277,6 +277,7 @@ class TetherSession:
         self.profile = profile
         self.record = record
         self.log = log
+        self.recording_error: str | None = None  # set by close() when the recording could not be written out
         self.progress = progress
         self.capture_target = capture_target
         self.camera: Camera | None = None
@@ -330,9 +331,15 @@ class TetherSession:
         return self._recorder
 
     def close(self) -> None:
+        """Close the recording, the camera and the catalog. A recording cut short by a full disk is reported
+        through `log` and kept in `recording_error` (the shots and the catalog are safe); the rest still closes."""
         if self._recorder is not None:
-            self._recorder.close()
-            self._recorder = None
+            recorder, self._recorder = self._recorder, None
+            try:
+                recorder.close()
+            except OSError as exc:  # RecordingWriteError: names the .rrd file and what to do
+                self.recording_error = str(exc)
+                self.log(f"error: {exc}")
         if self.camera is not None:
             try:
                 self.camera.close()
