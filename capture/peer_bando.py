@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from mca.processing.camera import FilterAperture
+from mca.processing.colour import srgb_encode
 
 ENV_VARIABLE = "MCA_BANDO_BIN"
 HALF_WINDOW = 7  # the program's SIZE argument: a 15x15 window, as in the paper's run.sh
@@ -87,8 +88,7 @@ def srgb8(planes: np.ndarray) -> np.ndarray:
     linear = np.clip(np.asarray(planes, np.float32), 0.0, None)
     white = float(np.percentile(linear, 99.5)) or 1.0
     v = np.clip(linear / white, 0.0, 1.0)
-    encoded = np.where(v <= 0.0031308, 12.92 * v, 1.055 * np.power(v, 1.0 / 2.4) - 0.055)
-    return np.clip(np.rint(encoded * 255.0), 0, 255).astype(np.uint8)
+    return np.clip(np.rint(srgb_encode(v) * 255.0), 0, 255).astype(np.uint8)  # IEC 61966-2-1 (processing/colour.py)
 
 
 def write_ppm(path: Path, rgb8: np.ndarray) -> None:

@@ -22,11 +22,13 @@ import sqlite3
 import time
 import unicodedata
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from mca.capture.catalog import Catalog
+from mca.devices import cameras
+from mca.devices.cameras import CameraFactory, SimRig
 from mca.devices.ptp.camera import (
     MAX_OBJECT_BYTES,
     Camera,
@@ -45,7 +47,6 @@ from mca.devices.ptp.codes import ObjectFormat
 from mca.devices.ptp.policy import DEFAULT_POLICY, PtpPolicy
 from mca.devices.ptp.transport import DeviceDisconnected, TransportError
 
-CameraFactory = Callable[[], Camera]
 MAX_FILENAME_CHARS = 100
 RETRIES = 6
 RAW_SUFFIXES = (".CR2", ".CR3", ".DNG", ".TIF", ".TIFF")
@@ -124,13 +125,8 @@ def _safe_target(out_dir: Path, name: str) -> Path:
 
 
 # -- opening cameras --------------------------------------------------------
-@dataclass
-class SimRig:
-    """The simulated camera and the USB backend it is reached through (kept so a reconnect finds it again)."""
-
-    camera: Any
-    backend: Any
-    scenario: str = "none"
+# The spec parser and the simulated rig live in devices/cameras.py (`open_camera`, beside `open_rail`);
+# the application adds what the simulated EOS 70D photographs: the MCA simulator's scenes.
 
 
 def make_sim_rig(
@@ -141,75 +137,28 @@ def make_sim_rig(
     scenario: str | None = None,
     live_view_source: Callable[[int], bytes] | None = None,
 ) -> SimRig:
-    """The simulated EOS 70D on a simulated USB bus; `scenario` names a fault scenario (`faults.SCENARIOS`)."""
-    from mca.devices.sim_eos70d.faults import scenario as named_scenario
-    from mca.devices.sim_eos70d.responder import SimEos70D
-    from mca.devices.sim_eos70d.usb_backend import SimUsbBackend
-
-    chosen = named_scenario(scenario or "none")
+    """The simulated EOS 70D on a simulated USB bus, photographing the paper's scenes (`default_sim_frame_source`)
+    and showing a rendered scene in live view; `scenario` names a fault scenario (`faults.SCENARIOS`)."""
     if live_view_source is None:
         from mca.capture.live import scene_live_view_source
 
         live_view_source = scene_live_view_source()  # rendered on the first live-view frame asked for
-    sim = SimEos70D(
-        frame_source or default_sim_frame_source(), behaviour=chosen.behaviour, live_view_source=live_view_source
+    return cameras.make_sim_rig(
+        frame_source or default_sim_frame_source(),
+        faults=faults,
+        pace_bytes_per_s=pace_bytes_per_s,
+        scenario=scenario,
+        live_view_source=live_view_source,
     )
-    plan = faults if faults is not None else chosen.faults
-    return SimRig(sim, SimUsbBackend(sim, faults=plan, pace_bytes_per_s=pace_bytes_per_s), chosen.name)
-
-
-def _policy_for(timeout_s: float | None, policy: PtpPolicy | None) -> PtpPolicy:
-    chosen = policy or DEFAULT_POLICY
-    if timeout_s is not None:
-        chosen = replace(chosen, transaction_timeout_s=timeout_s)
-    return chosen
 
 
 def camera_factory(
     spec: str, *, rig: SimRig | None = None, timeout_s: float | None = None, policy: PtpPolicy | None = None
 ) -> CameraFactory:
-    """A function that opens the camera named by `auto`, `sim[:SCENARIO]`, `usb:BUS:ADDR` or `ptpip:HOST[:PORT]`.
-
-    `timeout_s` overrides the policy's transaction timeout (tests shorten it).
-    """
-    from mca.devices.ptp.transport_usb import UsbTransport, find_cameras, open_usb
-
-    chosen = _policy_for(timeout_s, policy)
-    if spec == "sim" or spec.startswith("sim:"):
-        rig = rig or make_sim_rig(scenario=spec.partition(":")[2] or None)
-
-        def open_sim() -> Camera:
-            if not rig.backend.connected:
-                rig.backend.replug()  # the simulated photographer plugs the cable back in
-            cams = find_cameras(rig.backend)
-            return Camera.open(UsbTransport(cams[0], policy=chosen), policy=chosen)
-
-        open_sim.rig = rig  # type: ignore[attr-defined]
-        return open_sim
-    if spec.startswith("ptpip:"):
-        from mca.devices.ptp.transport_ptpip import PtpIpTransport
-
-        host, _, port = spec[len("ptpip:") :].partition(":")
-        try:
-            port_number = int(port or 15740)
-        except ValueError as exc:
-            raise ValueError(f"PTP/IP port must be a number, got {port!r} in {spec!r}") from exc
-        return lambda: Camera.open(PtpIpTransport(host or "127.0.0.1", port_number, policy=chosen), policy=chosen)
-    if spec.startswith("usb:"):
-        return lambda: Camera.open(open_usb(spec, policy=chosen), policy=chosen)
-    if spec == "auto":
-
-        def open_auto() -> Camera:
-            cams = find_cameras()
-            if not cams:
-                raise TransportError(
-                    "no PTP camera on USB: connect and switch on the EOS 70D, "
-                    "or use `--camera sim` for the simulated one"
-                )
-            return Camera.open(UsbTransport(cams[0], policy=chosen), policy=chosen)
-
-        return open_auto
-    raise ValueError(f"unknown camera {spec!r}: use auto, sim, sim:SCENARIO, usb:BUS:ADDR or ptpip:HOST:PORT")
+    """`devices.cameras.open_camera`, with `sim` photographing the paper's scenes (this module's `make_sim_rig`)."""
+    if cameras.is_sim(spec) and rig is None:
+        rig = make_sim_rig(scenario=spec.partition(":")[2] or None)
+    return cameras.open_camera(spec, rig=rig, timeout_s=timeout_s, policy=policy)
 
 
 # -- the session ------------------------------------------------------------
@@ -277,6 +226,7 @@ class TetherSession:
         self.profile = profile
         self.record = record
         self.log = log
+        self.recording_error: str | None = None  # set by close() when the recording could not be written out
         self.progress = progress
         self.capture_target = capture_target
         self.camera: Camera | None = None
@@ -330,9 +280,15 @@ class TetherSession:
         return self._recorder
 
     def close(self) -> None:
+        """Close the recording, the camera and the catalog. A recording cut short by a full disk is reported
+        through `log` and kept in `recording_error` (the shots and the catalog are safe); the rest still closes."""
         if self._recorder is not None:
-            self._recorder.close()
-            self._recorder = None
+            recorder, self._recorder = self._recorder, None
+            try:
+                recorder.close()
+            except OSError as exc:  # RecordingWriteError: names the .rrd file and what to do
+                self.recording_error = str(exc)
+                self.log(f"error: {exc}")
         if self.camera is not None:
             try:
                 self.camera.close()

@@ -426,7 +426,7 @@ def test_analytics_stay_off(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> 
 
 
 def test_disable_rerun_analytics_writes_rerun_own_opt_out(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import mca.capture.recording as recording
+    import mca.capture.recording.rerun_env as recording
 
     monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config"))
     monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data"))
