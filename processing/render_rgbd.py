@@ -50,6 +50,7 @@ import scipy.fft
 import scipy.ndimage
 
 from mca.processing.camera import CHANNELS, CameraProfile
+from mca.processing.colour import srgb_decode as srgb_to_linear  # IEC 61966-2-1, the one sRGB curve
 from mca.processing.simulate import BAYER_SITES, SensorModel, SimulationOptics, _expose, _Spectra
 
 SLICE_STEP_PX = 0.25  # largest red-blue disparity step between slices (px of the render)
@@ -57,14 +58,6 @@ OCCLUSION_GAP_PX = 1.0  # a slice hides another only when it is at least this mu
 
 
 # --- depth from stereo disparity --------------------------------------------------------------------------------
-
-
-def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 sRGB decoding of values in [0, 1]: c/12.92 up to 0.04045, else ((c+0.055)/1.055)^2.4."""
-    c = np.asarray(encoded, dtype=np.float32)
-    return np.where(
-        c <= 0.04045, c / np.float32(12.92), np.power((c + np.float32(0.055)) / np.float32(1.055), np.float32(2.4))
-    ).astype(np.float32)
 
 
 def fill_from_farther_neighbour(disparity: np.ndarray, valid: np.ndarray) -> np.ndarray:
