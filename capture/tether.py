@@ -27,6 +27,8 @@ from pathlib import Path
 from typing import Any
 
 from mca.capture.catalog import Catalog
+from mca.capture.file_names import FilenamePattern
+from mca.capture.hooks import HookScript
 from mca.devices.ptp.camera import (
     MAX_OBJECT_BYTES,
     Camera,
@@ -166,15 +168,30 @@ def _policy_for(timeout_s: float | None, policy: PtpPolicy | None) -> PtpPolicy:
 
 
 def camera_factory(
-    spec: str, *, rig: SimRig | None = None, timeout_s: float | None = None, policy: PtpPolicy | None = None
+    spec: str,
+    *,
+    rig: SimRig | None = None,
+    timeout_s: float | None = None,
+    policy: PtpPolicy | None = None,
+    traffic_log: Callable[[str], None] | None = None,
 ) -> CameraFactory:
     """A function that opens the camera named by `auto`, `sim[:SCENARIO]`, `usb:BUS:ADDR` or `ptpip:HOST[:PORT]`.
 
-    `timeout_s` overrides the policy's transaction timeout (tests shorten it).
+    `timeout_s` overrides the policy's transaction timeout (tests shorten it). `traffic_log(line)` receives
+    every PTP transaction and event of every connection it opens (`devices.ptp.traffic_log`).
     """
     from mca.devices.ptp.transport_usb import UsbTransport, find_cameras, open_usb
 
     chosen = _policy_for(timeout_s, policy)
+
+    def logged(transport: Any) -> Any:
+        if traffic_log is None:
+            return transport
+        from mca.devices.ptp.traffic_log import log_traffic, timestamp
+
+        traffic_log(f"{timestamp()} # connected to {spec} ({type(transport).__name__})")
+        return log_traffic(transport, traffic_log)
+
     if spec == "sim" or spec.startswith("sim:"):
         rig = rig or make_sim_rig(scenario=spec.partition(":")[2] or None)
 
@@ -182,7 +199,7 @@ def camera_factory(
             if not rig.backend.connected:
                 rig.backend.replug()  # the simulated photographer plugs the cable back in
             cams = find_cameras(rig.backend)
-            return Camera.open(UsbTransport(cams[0], policy=chosen), policy=chosen)
+            return Camera.open(logged(UsbTransport(cams[0], policy=chosen)), policy=chosen)
 
         open_sim.rig = rig  # type: ignore[attr-defined]
         return open_sim
@@ -194,9 +211,11 @@ def camera_factory(
             port_number = int(port or 15740)
         except ValueError as exc:
             raise ValueError(f"PTP/IP port must be a number, got {port!r} in {spec!r}") from exc
-        return lambda: Camera.open(PtpIpTransport(host or "127.0.0.1", port_number, policy=chosen), policy=chosen)
+        return lambda: Camera.open(
+            logged(PtpIpTransport(host or "127.0.0.1", port_number, policy=chosen)), policy=chosen
+        )
     if spec.startswith("usb:"):
-        return lambda: Camera.open(open_usb(spec, policy=chosen), policy=chosen)
+        return lambda: Camera.open(logged(open_usb(spec, policy=chosen)), policy=chosen)
     if spec == "auto":
 
         def open_auto() -> Camera:
@@ -206,7 +225,7 @@ def camera_factory(
                     "no PTP camera on USB: connect and switch on the EOS 70D, "
                     "or use `--camera sim` for the simulated one"
                 )
-            return Camera.open(UsbTransport(cams[0], policy=chosen), policy=chosen)
+            return Camera.open(logged(UsbTransport(cams[0], policy=chosen)), policy=chosen)
 
         return open_auto
     raise ValueError(f"unknown camera {spec!r}: use auto, sim, sim:SCENARIO, usb:BUS:ADDR or ptpip:HOST:PORT")
@@ -222,6 +241,8 @@ class ShotResult:
     path: Path | None
     status: str
     message: str = ""
+    size_bytes: int | None = None  # of the file on disk
+    download_s: float | None = None  # how long its download took
 
 
 class _HashingWriter:
@@ -251,6 +272,9 @@ class TetherSession:
         progress: Callable[[int, int], None] | None = None,
         capture_target: str | None = "card",
         policy: PtpPolicy = DEFAULT_POLICY,
+        filename_pattern: FilenamePattern | None = None,
+        hook: HookScript | None = None,
+        on_result: Callable[[ShotResult], None] | None = None,
     ) -> None:
         self.factory = factory
         self.out_dir = Path(out_dir)
@@ -279,6 +303,9 @@ class TetherSession:
         self.log = log
         self.progress = progress
         self.capture_target = capture_target
+        self.filename_pattern = filename_pattern
+        self.hook = hook
+        self.on_result = on_result  # told of every file's outcome as it lands (the CLI prints each shot)
         self.camera: Camera | None = None
         self.reconnects = 0
         self.results: list[ShotResult] = []  # every file of this run, in order (also after Ctrl-C)
@@ -452,6 +479,8 @@ class TetherSession:
 
     def _note(self, result: ShotResult) -> ShotResult:
         self.results.append(result)
+        if self.on_result is not None:
+            self.on_result(result)
         return result
 
     def _store_new(self, obj: CapturedObject) -> ShotResult | None:
@@ -465,6 +494,7 @@ class TetherSession:
         return self._note(self._fetch(shot_id, obj))
 
     def _fetch(self, shot_id: int, obj: CapturedObject) -> ShotResult:
+        started = time.monotonic()
         try:
             path = self._retrying(f"download of {obj.filename}", lambda cam: self._download(cam, shot_id, obj))
         except (TetherError, ValueError, OSError) as exc:
@@ -474,9 +504,33 @@ class TetherSession:
                 return ShotResult(shot_id, None, "captured", f"still on the camera's card: {message}")
             self.catalog.mark_failed(shot_id, message)
             return ShotResult(shot_id, None, "failed", message)
+        took_s = time.monotonic() - started
+        size = path.stat().st_size if path.is_file() else None
+        if not self._run_hook(shot_id, path):
+            return ShotResult(shot_id, path, "downloaded", "the hook script moved or deleted it", size, took_s)
         if self.process and self.catalog.get(shot_id).status == "downloaded" and _is_raw(path):
-            return self._process(shot_id, path)
-        return ShotResult(shot_id, path, "downloaded")
+            return replace(self._process(shot_id, path), size_bytes=size, download_s=took_s)
+        return ShotResult(shot_id, path, "downloaded", "", size, took_s)
+
+    def _run_hook(self, shot_id: int, path: Path) -> bool:
+        """Run `--hook-script` with ACTION=download for a stored file; False when the file is gone after it."""
+        if self.hook is None:
+            return True
+        failure = self.hook.run(
+            "download",
+            str(path),
+            {"MCA_SHOT_ID": str(shot_id), "MCA_CATALOG": str(self.catalog.path), "MCA_OUT_DIR": str(self.out_dir)},
+        )
+        if failure is not None:
+            self.log(str(failure))
+        if path.is_file():
+            return True
+        from mca.capture.hooks import HookFailure
+
+        gone = HookFailure("download", str(path), "the file is no longer there after the hook ran (moved or deleted)")
+        self.hook.failures.append(gone)
+        self.log(str(gone))
+        return False
 
     def _download(self, cam: Camera, shot_id: int, obj: CapturedObject) -> Path:
         row = self.catalog.get(shot_id)
@@ -492,7 +546,10 @@ class TetherSession:
             raise ValueError(
                 f"{cam.name} reports {expected} bytes for {obj.filename!r}; refusing (limit {MAX_OBJECT_BYTES})"
             )
-        name = sanitize_filename(obj.filename, self.catalog.file_names() | set(os.listdir(self.out_dir)))
+        wanted = obj.filename
+        if self.filename_pattern is not None:
+            wanted = self.filename_pattern.name_for(shot_id, obj.filename)
+        name = sanitize_filename(wanted, self.catalog.file_names() | set(os.listdir(self.out_dir)))
         final = _safe_target(self.out_dir, name)
         tmp = _safe_target(self.out_dir, f".{name}.part")
         renamed = False
