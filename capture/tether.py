@@ -14,11 +14,14 @@ end a run are `TetherError`s with a message a user can act on.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import hashlib
 import os
 import re
+import signal
 import sqlite3
+import threading
 import time
 import unicodedata
 from collections.abc import Callable
@@ -86,6 +89,41 @@ def default_sim_frame_source(size: str | float | None = None, profile_name: str 
         return f"IMG_{index:04d}.CR2", capture_cr2_bytes(capture, profile)
 
     return frame
+
+
+# -- Ctrl-C between two writes that belong together ------------------------
+class DeferredInterrupt:
+    """Within `with DeferredInterrupt() as d:` a Ctrl-C (SIGINT) is held back until the block ends, then raised
+    (`KeyboardInterrupt`, or the handler that was installed); `d.requested` says one arrived, so a wait inside
+    can end early. For the few steps that must not be split: a file taken from the camera's event queue and
+    its catalog row, a file renamed into place and its row saying so. Outside the main thread it does nothing
+    (signals reach only the main thread)."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._previous: Any = None
+        self._active = False
+
+    def __enter__(self) -> DeferredInterrupt:
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.getsignal(signal.SIGINT)
+            signal.signal(signal.SIGINT, self._note)
+            self._active = True
+        return self
+
+    def _note(self, signum: int, frame: Any) -> None:
+        self.requested = True
+
+    def __exit__(self, *exc: object) -> None:
+        if not self._active:
+            return
+        signal.signal(signal.SIGINT, self._previous)
+        self._active = False
+        if self.requested and exc[0] is None:
+            if callable(self._previous):
+                self._previous(signal.SIGINT, None)
+            elif self._previous == signal.SIG_DFL:
+                raise KeyboardInterrupt
 
 
 # -- untrusted names --------------------------------------------------------
@@ -313,6 +351,7 @@ class TetherSession:
         self._seen: set[tuple[str, int, bool]] = set()  # (camera file name, handle, in RAM) stored this run
         self._profile_obj: Any = None
         self._recorder: Any = None
+        self._release_id: int | None = None  # this run's release in flight (catalog table `releases`)
 
     # connection ------------------------------------------------------------
     def connect(self) -> Camera:
@@ -402,7 +441,7 @@ class TetherSession:
         for attempt in range(RETRIES):
             cam = self._cam()
             try:
-                return cam.trigger()
+                return cam.trigger(before_release=self._note_release)
             except (ReleaseRefused, ReleaseUncertain):
                 raise
             except CameraNotReady as exc:
@@ -426,6 +465,24 @@ class TetherSession:
                     self.reconnects += 1
         raise TetherError(f"could not get the camera ready to shoot: {last}")
 
+    def _note_release(self, ticket: CaptureTicket) -> None:
+        """Before the shutter goes: note the release and the card as it is, so that a run killed before the new
+        files are catalogued leaves a trace the next connection follows (`_adopt_released`)."""
+        if ticket.card_handles is None:
+            return  # shots to the camera's RAM: lost with the session, nothing to find on the card later
+        try:
+            if self._release_id is not None:  # an attempt that stopped before its release
+                self.catalog.release_done(self._release_id)
+                self._release_id = None
+            self._release_id = self.catalog.add_release(ticket.serial_number, ticket.card_handles)
+        except sqlite3.Error as exc:
+            raise ReleaseRefused(f"not released: the catalog cannot note the release ({exc})") from exc
+
+    def _release_finished(self) -> None:
+        if self._release_id is not None:
+            self.catalog.release_done(self._release_id)
+            self._release_id = None
+
     def capture(self, count: int = 1, interval_s: float = 0.0) -> list[ShotResult]:
         """Take `count` pictures: one release each; every file a release made is downloaded (RAW+JPEG: both)."""
         results: list[ShotResult] = []
@@ -441,6 +498,7 @@ class TetherSession:
             ticket = self._trigger()
         except ReleaseRefused as exc:
             self.log(str(exc))
+            self._release_finished()
             return [self._note(ShotResult(None, None, "refused", str(exc)))]
         except ReleaseUncertain as exc:
             self.log(str(exc))
@@ -450,31 +508,35 @@ class TetherSession:
         try:
             objects = self._retrying("waiting for the new file", lambda cam: cam.wait_for_capture(ticket))
         except CaptureError as exc:
-            self.log(str(exc))
+            self.log(str(exc))  # the release row stays: the next connection looks for what it made
             return [self._note(ShotResult(None, None, "failed", str(exc)))]
-        out = [self._store_new(obj) for obj in objects]
-        out += self._store_unclaimed()
-        return [r for r in out if r is not None]
+        with DeferredInterrupt():  # the files the release made and their catalog rows, with no Ctrl-C between
+            catalogued = [(obj, self._catalogue(obj)) for obj in objects]
+            catalogued += self._catalogue_unclaimed()
+            self._release_finished()
+        return [self._note(self._fetch(shot_id, obj)) for obj, shot_id in catalogued if shot_id is not None]
 
-    def _store_unclaimed(self) -> list[ShotResult]:
+    def _catalogue_unclaimed(self) -> list[tuple[CapturedObject, int | None]]:
         """Files that appeared without our release (the camera's own shutter button) are kept too."""
         cam = self.camera
         out = []
         while cam is not None and cam.unclaimed:
-            result = self._store_new(cam.unclaimed.pop(0))
-            if result is not None:
-                out.append(result)
+            obj = cam.unclaimed.pop(0)
+            out.append((obj, self._catalogue(obj)))
         return out
 
     def tethered(self, stop: Callable[[], bool], *, max_shots: int | None = None) -> list[ShotResult]:
         """Download each shot taken with the camera's own shutter button until `stop()` (or `max_shots`)."""
         results: list[ShotResult] = []
         while not stop() and (max_shots is None or len(results) < max_shots):
-            obj = self._retrying("waiting for a shot", lambda cam: cam.wait_for_object(0.5, stop=stop))
-            if obj is not None:
-                result = self._store_new(obj)
-                if result is not None:
-                    results.append(result)
+            # a file taken from the camera's event queue gets its catalog row before a Ctrl-C is let through
+            with DeferredInterrupt() as held:
+                obj = self._retrying(
+                    "waiting for a shot", lambda cam: cam.wait_for_object(0.5, stop=lambda: stop() or held.requested)
+                )
+                shot_id = self._catalogue(obj) if obj is not None else None
+            if obj is not None and shot_id is not None:
+                results.append(self._note(self._fetch(shot_id, obj)))
         return results
 
     def _note(self, result: ShotResult) -> ShotResult:
@@ -483,7 +545,8 @@ class TetherSession:
             self.on_result(result)
         return result
 
-    def _store_new(self, obj: CapturedObject) -> ShotResult | None:
+    def _catalogue(self, obj: CapturedObject) -> int | None:
+        """The catalog row of a new file (None: this run has it already)."""
         key = (obj.filename, obj.handle, obj.in_ram)
         if key in self._seen:
             return None
@@ -491,7 +554,7 @@ class TetherSession:
         serial = self._cam().serial_number
         shot_id = self.catalog.add_captured(serial, obj.filename, obj.handle, obj.size_bytes)
         self.shot_ids.append(shot_id)
-        return self._note(self._fetch(shot_id, obj))
+        return shot_id
 
     def _fetch(self, shot_id: int, obj: CapturedObject) -> ShotResult:
         started = time.monotonic()
@@ -553,28 +616,30 @@ class TetherSession:
         final = _safe_target(self.out_dir, name)
         tmp = _safe_target(self.out_dir, f".{name}.part")
         renamed = False
-        try:
-            with open(tmp, "wb") as fh:
-                writer = _HashingWriter(fh)
-                cam.download(handle, expected, writer, progress=self.progress)  # type: ignore[arg-type]
-                fh.flush()
-                os.fsync(fh.fileno())
-            if writer.size_bytes != expected or tmp.stat().st_size != expected:
-                raise ProtocolError(
-                    f"{cam.name} sent {writer.size_bytes} bytes for {obj.filename!r}, ObjectInfo says {expected}"
-                )
-            os.replace(tmp, final)
-            renamed = True
-        finally:
-            if not renamed:
-                tmp.unlink(missing_ok=True)  # a full disk or a failed link leaves no .part behind
-        dir_fd = os.open(self.out_dir, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
-        digest = writer.sha.hexdigest()
-        self.catalog.mark_downloaded(shot_id, name, expected, digest)
+        with contextlib.ExitStack() as held:
+            try:
+                with open(tmp, "wb") as fh:
+                    writer = _HashingWriter(fh)
+                    cam.download(handle, expected, writer, progress=self.progress)  # type: ignore[arg-type]
+                    fh.flush()
+                    os.fsync(fh.fileno())
+                if writer.size_bytes != expected or tmp.stat().st_size != expected:
+                    raise ProtocolError(
+                        f"{cam.name} sent {writer.size_bytes} bytes for {obj.filename!r}, ObjectInfo says {expected}"
+                    )
+                held.enter_context(DeferredInterrupt())  # the file in place and its row saying so: not split
+                os.replace(tmp, final)
+                renamed = True
+            finally:
+                if not renamed:
+                    tmp.unlink(missing_ok=True)  # a full disk or a failed link leaves no .part behind
+            dir_fd = os.open(self.out_dir, os.O_RDONLY)
+            try:
+                os.fsync(dir_fd)
+            finally:
+                os.close(dir_fd)
+            digest = writer.sha.hexdigest()
+            self.catalog.mark_downloaded(shot_id, name, expected, digest)
         if obj.in_ram:
             cam.transfer_complete(handle)
         elif self.delete_after_verify and _sha256_file(final) == digest:
@@ -599,6 +664,7 @@ class TetherSession:
         cam = self.camera
         if cam is None:
             return []
+        self._adopt_released(cam)
         results = []
         for row in self.catalog.missing(cam.serial_number):
             obj = CapturedObject(row.camera_handle or 0, row.camera_filename, row.size_bytes or 0, 0, 0, False)
@@ -608,6 +674,24 @@ class TetherSession:
             self._seen.add((obj.filename, obj.handle, False))
             results.append(self._note(self._fetch(row.id, obj)))
         return results
+
+    def _adopt_released(self, cam: Camera) -> None:
+        """Catalog the files of releases an earlier run made but never catalogued (killed or interrupted between
+        the release and the catalog row): files on the card that were not there before such a release and that
+        the catalog does not know. `recover_missing` then downloads them like any other pending shot."""
+        pending = [
+            (rid, before) for rid, before in self.catalog.pending_releases(cam.serial_number) if rid != self._release_id
+        ]
+        if not pending:
+            return
+        card = [(h, info) for h, info in cam.files() if info.object_format != ObjectFormat.ASSOCIATION]
+        for release_id, before in pending:
+            for handle, info in card:
+                if handle in before or self.catalog.has_camera_file(cam.serial_number, info.filename):
+                    continue
+                self.log(f"cataloguing {info.filename}: released by an earlier run that stopped before noting it")
+                self.catalog.add_captured(cam.serial_number, info.filename, handle, info.compressed_size_bytes)
+            self.catalog.release_done(release_id)
 
     def _process(self, shot_id: int, path: Path) -> ShotResult:
         try:
