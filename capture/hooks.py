@@ -1,7 +1,7 @@
 """`mca capture --hook-script FILE`: run the user's program around a capture run, as gphoto2 does.
 
-The program is run with the environment variable `ACTION` set to `init` (once, after the camera is
-connected), `start` (before the shots are taken or awaited), `download` (after each file is stored, with
+The program is run with the environment variable `ACTION` set to `init` (once, before the camera is
+opened), `start` (before the shots are taken or awaited), `download` (after each file is stored, with
 `ARGUMENT` = the file's path) and `stop` (at the end, also after Ctrl-C), as gphoto2's `--hook-script`
 does. mca adds `MCA_SHOT_ID` (the catalog row), `MCA_CATALOG` and `MCA_OUT_DIR` for `download`.
 

@@ -254,12 +254,14 @@ def capture(
     stop = threading.Event()
     interrupted = False
     problems = 0
+    hook_started = False
     try:
-        session.connect()
         if hook is not None:
             failure = hook.run("init")
             if failure is not None:  # as gphoto2: a failing init stops the run before anything is taken
                 raise TetherError(f"{failure}; nothing was taken")
+            hook_started = True
+        session.connect()
         if process:
             process_unfinished(session)
         if hook is not None:
@@ -279,7 +281,7 @@ def capture(
     finally:
         bar.close()
         try:
-            if hook is not None and (session.camera is not None or session.results):
+            if hook is not None and hook_started:
                 hook.run("stop")
             problems += _summary(session, interrupted, err=as_json)
             if as_json:
