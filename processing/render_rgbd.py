@@ -517,7 +517,7 @@ def draw_scene_settings(rng: np.random.Generator, base: SensorModel = SensorMode
     crosstalk = None
     if rng.random() < CROSSTALK_SHARE:
         strength = float(rng.uniform(*CROSSTALK_RANGE))
-        rows = []
+        rows: list[tuple[float, float, float]] = []
         for i in range(3):
             split = rng.uniform(0.2, 0.8)
             leak = [strength * split, strength * (1.0 - split)]
@@ -525,7 +525,7 @@ def draw_scene_settings(rng: np.random.Generator, base: SensorModel = SensorMode
             row[i] = 1.0 - strength
             others = [j for j in range(3) if j != i]
             row[others[0]], row[others[1]] = leak
-            rows.append(tuple(round(v, 6) for v in row))
+            rows.append((round(row[0], 6), round(row[1], 6), round(row[2], 6)))
         crosstalk = tuple(rows)
     vignetting = str(rng.choice(VIGNETTING_CHOICES))
     k = (float(rng.uniform(*POLY_K2_RANGE)), float(rng.uniform(*POLY_K4_RANGE))) if vignetting == "poly" else (0.0, 0.0)
