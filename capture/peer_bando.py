@@ -87,13 +87,8 @@ def srgb8(planes: np.ndarray) -> np.ndarray:
     """Linear planes -> 8-bit sRGB, one gain for the whole image (99.5th percentile to white), as a camera would."""
     linear = np.clip(np.asarray(planes, np.float32), 0.0, None)
     white = float(np.percentile(linear, 99.5)) or 1.0
-<<<<<<< HEAD
-    v = np.clip(linear / white, 0.0, 1.0)
-    return np.clip(np.rint(srgb_encode(v) * 255.0), 0, 255).astype(np.uint8)  # IEC 61966-2-1 (processing/colour.py)
-=======
     encoded = srgb_encode(linear / white)  # clipped to [0, 1]; the curve of processing/colour.py
     return np.clip(np.rint(encoded * 255.0), 0, 255).astype(np.uint8)
->>>>>>> cli
 
 
 def write_ppm(path: Path, rgb8: np.ndarray) -> None:

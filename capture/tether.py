@@ -25,18 +25,15 @@ import threading
 import time
 import unicodedata
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 from mca.capture.catalog import Catalog
-<<<<<<< HEAD
-from mca.devices import cameras
-from mca.devices.cameras import CameraFactory, SimRig
-=======
 from mca.capture.file_names import FilenamePattern
 from mca.capture.hooks import HookScript
->>>>>>> cli
+from mca.devices import cameras
+from mca.devices.cameras import CameraFactory, SimRig
 from mca.devices.ptp.camera import (
     MAX_OBJECT_BYTES,
     Camera,
@@ -203,67 +200,10 @@ def camera_factory(
     policy: PtpPolicy | None = None,
     traffic_log: Callable[[str], None] | None = None,
 ) -> CameraFactory:
-<<<<<<< HEAD
     """`devices.cameras.open_camera`, with `sim` photographing the paper's scenes (this module's `make_sim_rig`)."""
     if cameras.is_sim(spec) and rig is None:
         rig = make_sim_rig(scenario=spec.partition(":")[2] or None)
-    return cameras.open_camera(spec, rig=rig, timeout_s=timeout_s, policy=policy)
-=======
-    """A function that opens the camera named by `auto`, `sim[:SCENARIO]`, `usb:BUS:ADDR` or `ptpip:HOST[:PORT]`.
-
-    `timeout_s` overrides the policy's transaction timeout (tests shorten it). `traffic_log(line)` receives
-    every PTP transaction and event of every connection it opens (`devices.ptp.traffic_log`).
-    """
-    from mca.devices.ptp.transport_usb import UsbTransport, find_cameras, open_usb
-
-    chosen = _policy_for(timeout_s, policy)
-
-    def logged(transport: Any) -> Any:
-        if traffic_log is None:
-            return transport
-        from mca.devices.ptp.traffic_log import log_traffic, timestamp
-
-        traffic_log(f"{timestamp()} # connected to {spec} ({type(transport).__name__})")
-        return log_traffic(transport, traffic_log)
-
-    if spec == "sim" or spec.startswith("sim:"):
-        rig = rig or make_sim_rig(scenario=spec.partition(":")[2] or None)
-
-        def open_sim() -> Camera:
-            if not rig.backend.connected:
-                rig.backend.replug()  # the simulated photographer plugs the cable back in
-            cams = find_cameras(rig.backend)
-            return Camera.open(logged(UsbTransport(cams[0], policy=chosen)), policy=chosen)
-
-        open_sim.rig = rig  # type: ignore[attr-defined]
-        return open_sim
-    if spec.startswith("ptpip:"):
-        from mca.devices.ptp.transport_ptpip import PtpIpTransport
-
-        host, _, port = spec[len("ptpip:") :].partition(":")
-        try:
-            port_number = int(port or 15740)
-        except ValueError as exc:
-            raise ValueError(f"PTP/IP port must be a number, got {port!r} in {spec!r}") from exc
-        return lambda: Camera.open(
-            logged(PtpIpTransport(host or "127.0.0.1", port_number, policy=chosen)), policy=chosen
-        )
-    if spec.startswith("usb:"):
-        return lambda: Camera.open(logged(open_usb(spec, policy=chosen)), policy=chosen)
-    if spec == "auto":
-
-        def open_auto() -> Camera:
-            cams = find_cameras()
-            if not cams:
-                raise TransportError(
-                    "no PTP camera on USB: connect and switch on the EOS 70D, "
-                    "or use `--camera sim` for the simulated one"
-                )
-            return Camera.open(logged(UsbTransport(cams[0], policy=chosen)), policy=chosen)
-
-        return open_auto
-    raise ValueError(f"unknown camera {spec!r}: use auto, sim, sim:SCENARIO, usb:BUS:ADDR or ptpip:HOST:PORT")
->>>>>>> cli
+    return cameras.open_camera(spec, rig=rig, timeout_s=timeout_s, policy=policy, traffic_log=traffic_log)
 
 
 # -- the session ------------------------------------------------------------

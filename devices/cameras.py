@@ -68,17 +68,32 @@ def is_sim(spec: str) -> bool:
 
 
 def open_camera(
-    spec: str, *, rig: SimRig | None = None, timeout_s: float | None = None, policy: PtpPolicy | None = None
+    spec: str,
+    *,
+    rig: SimRig | None = None,
+    timeout_s: float | None = None,
+    policy: PtpPolicy | None = None,
+    traffic_log: Callable[[str], None] | None = None,
 ) -> CameraFactory:
     """A function that opens the camera named by `auto`, `sim[:SCENARIO]`, `usb:BUS:ADDR` or `ptpip:HOST[:PORT]`.
 
     `rig` is the simulated camera `sim` opens (default: a new one, `make_sim_rig(scenario=...)`);
-    `timeout_s` overrides the policy's transaction timeout (tests shorten it). A spec that names no
-    camera is a `ValueError` that lists the accepted forms.
+    `timeout_s` overrides the policy's transaction timeout (tests shorten it); `traffic_log(line)` receives
+    every PTP transaction and event of every connection it opens (`devices.ptp.traffic_log`). A spec that
+    names no camera is a `ValueError` that lists the accepted forms.
     """
     from mca.devices.ptp.transport_usb import UsbTransport, find_cameras, open_usb
 
     chosen = policy_for(timeout_s, policy)
+
+    def logged(transport: Any) -> Any:
+        if traffic_log is None:
+            return transport
+        from mca.devices.ptp.traffic_log import log_traffic, timestamp
+
+        traffic_log(f"{timestamp()} # connected to {spec} ({type(transport).__name__})")
+        return log_traffic(transport, traffic_log)
+
     if is_sim(spec):
         sim_rig = rig or make_sim_rig(scenario=spec.partition(":")[2] or None)
 
@@ -86,7 +101,7 @@ def open_camera(
             if not sim_rig.backend.connected:
                 sim_rig.backend.replug()  # the simulated photographer plugs the cable back in
             cams = find_cameras(sim_rig.backend)
-            return Camera.open(UsbTransport(cams[0], policy=chosen), policy=chosen)
+            return Camera.open(logged(UsbTransport(cams[0], policy=chosen)), policy=chosen)
 
         open_sim.rig = sim_rig  # type: ignore[attr-defined]
         return open_sim
@@ -98,9 +113,11 @@ def open_camera(
             port_number = int(port or PTPIP_DEFAULT_PORT)
         except ValueError as exc:
             raise ValueError(f"PTP/IP port must be a number, got {port!r} in {spec!r}") from exc
-        return lambda: Camera.open(PtpIpTransport(host or "127.0.0.1", port_number, policy=chosen), policy=chosen)
+        return lambda: Camera.open(
+            logged(PtpIpTransport(host or "127.0.0.1", port_number, policy=chosen)), policy=chosen
+        )
     if spec.startswith("usb:"):
-        return lambda: Camera.open(open_usb(spec, policy=chosen), policy=chosen)
+        return lambda: Camera.open(logged(open_usb(spec, policy=chosen)), policy=chosen)
     if spec == "auto":
 
         def open_auto() -> Camera:
@@ -110,7 +127,7 @@ def open_camera(
                     "no PTP camera on USB: connect and switch on the EOS 70D, "
                     "or use `--camera sim` for the simulated one"
                 )
-            return Camera.open(UsbTransport(cams[0], policy=chosen), policy=chosen)
+            return Camera.open(logged(UsbTransport(cams[0], policy=chosen)), policy=chosen)
 
         return open_auto
     raise ValueError(f"unknown camera {spec!r}: use {SPECS}")

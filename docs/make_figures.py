@@ -91,9 +91,14 @@ def main() -> None:
         if binary is not None:
             run = run_bando(binary, planes, profile.aperture, (-10.0, 20.0))
             tiles.append(render(run.disparity_px, np.zeros_like(result.labels), "Bando 2008 (graph cuts)"))
-        row = np.hstack([cv2.resize(t, (360, int(360 * t.shape[0] / t.shape[1])), interpolation=cv2.INTER_AREA) for t in tiles])
+        row = np.hstack(
+            [cv2.resize(t, (360, int(360 * t.shape[0] / t.shape[1])), interpolation=cv2.INTER_AREA) for t in tiles]
+        )
         rows.append(row)
-        print(f"{name}: {len(result.regions)} regions, {seconds:.1f} s" + ("" if binary else " (Bando's program not found)"))
+        print(
+            f"{name}: {len(result.regions)} regions, {seconds:.1f} s"
+            + ("" if binary else " (Bando's program not found)")
+        )
     width = max(r.shape[1] for r in rows)
     rows = [np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0))) for r in rows]
     grid = np.vstack([*rows, colour_bar(width)])

@@ -244,8 +244,20 @@ def _data_terms(disparity, evidence, width, planes, pix_ptr, pix_index, cand_ptr
 
 @nb.njit(cache=True)
 def _icm(
-    planes, cand_ptr, cand_list, data, nb_ptr, nb_other, nb_pair, weight, sample_ptr, sample_xy, jump_clip, sweeps,
-    order, known,
+    planes,
+    cand_ptr,
+    cand_list,
+    data,
+    nb_ptr,
+    nb_other,
+    nb_pair,
+    weight,
+    sample_ptr,
+    sample_xy,
+    jump_clip,
+    sweeps,
+    order,
+    known,
 ):  # type: ignore[no-untyped-def]
     n = cand_ptr.shape[0] - 1
     label = np.arange(n)
