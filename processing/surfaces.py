@@ -105,7 +105,7 @@ def fit_planes(
     ys = np.repeat(np.arange(h, dtype=np.float64), w)
     d = disparity.ravel().astype(np.float64)
     wt = weights.ravel().astype(np.float64)
-    coef = np.zeros((count, 3))
+    coef: np.ndarray = np.zeros((count, 3))
     robust = wt
     for iteration in range(iterations):
         if iteration > 0:
@@ -223,7 +223,7 @@ def _graph(labels: np.ndarray, count: int, rings: int, samples: int) -> _Graph:
 
 
 @nb.njit(cache=True, parallel=True, fastmath=True)
-def _data_terms(disparity, evidence, width, planes, pix_ptr, pix_index, cand_ptr, cand_list, clip):  # type: ignore[no-untyped-def]
+def _data_terms(disparity, evidence, width, planes, pix_ptr, pix_index, cand_ptr, cand_list, clip):
     n = pix_ptr.shape[0] - 1
     out = np.zeros(cand_list.shape[0], np.float64)
     flat = disparity.ravel()
@@ -258,7 +258,7 @@ def _icm(
     sweeps,
     order,
     known,
-):  # type: ignore[no-untyped-def]
+):
     n = cand_ptr.shape[0] - 1
     label = np.arange(n)
     for _ in range(sweeps):
