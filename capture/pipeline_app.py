@@ -515,8 +515,12 @@ def result_document(
     optics: Any,
     written: list[str],
     timings_s: dict[str, float],
+    *,
+    quality: str = "full",
 ) -> dict[str, Any]:
-    """The content of result.json (see docs/outputs.md); region pixels are counted at input resolution."""
+    """The content of result.json (see docs/outputs.md); region pixels are counted at input resolution.
+
+    `settings` names the quality setting and the pipeline parameters it stands for."""
     counts = np.bincount(
         labels_input.ravel().astype(np.intp), minlength=max([r.id for r in result.regions], default=0) + 1
     )
@@ -548,6 +552,10 @@ def result_document(
         "software": software(),
         "input": str(input_path),
         "profile": profile.name,
+        "settings": {
+            "quality": quality,
+            "pipeline_params": outputs.json_safe(dataclasses.asdict(api.pipeline_params(quality))),
+        },
         "focus_region": None if result.focus_region is None else int(result.focus_region),
         "regions": regions,
         "timings_s": {k: round(float(v), 6) for k, v in timings_s.items()},
@@ -640,23 +648,35 @@ def is_finished(out_dir: Path) -> bool:
     return (out_dir / RESULT_NAME).is_file()
 
 
-def settings_key(profile: CameraProfile) -> str:
-    """sha256 of what decides the outputs besides the photograph: the profile's values and result.json's
+def settings_key(profile: CameraProfile, quality: str = "full") -> str:
+    """sha256 of what decides the outputs besides the photograph: the profile's values, the quality setting
+    (`--quality`: a preview result never stands for a full one, nor the other way round) and result.json's
     `schema_version` (raising it makes reruns redo finished folders).
 
     The version of mca is not part of it: after an upgrade, `--force` recomputes finished folders.
     """
     described = dataclasses.asdict(profile)
     described.pop("source", None)  # where the profile file lies does not change the result
-    payload = {"format": RESULT_SCHEMA_VERSION, "profile": outputs.json_safe(described)}
+    payload: dict[str, Any] = {"format": RESULT_SCHEMA_VERSION, "profile": outputs.json_safe(described)}
+    if api.check_quality(quality) != "full":  # "full" keeps the key results had before --quality existed
+        payload["quality"] = quality
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode("utf-8")).hexdigest()
 
 
 def _unchanged_reason(
-    document: dict[str, Any] | None, source: output_folders.SourceId, key: str, profile: CameraProfile, folder: Path
+    document: dict[str, Any] | None,
+    source: output_folders.SourceId,
+    key: str,
+    profile: CameraProfile,
+    folder: Path,
+    quality: str = "full",
 ) -> str | None:
     """Why the finished result in `folder` can stand for this input, or None when it must be made again."""
     if document is None:
+        return None
+    settings = document.get("settings")
+    recorded_quality = settings.get("quality", "full") if isinstance(settings, dict) else "full"
+    if recorded_quality != quality:  # also guards results whose key predates --quality
         return None
     recorded = document.get("source")
     if isinstance(recorded, dict):
@@ -740,6 +760,7 @@ def process_file(
     recording_id: str | None = None,
     recorder: Any = None,
     max_megapixels: float | None = None,
+    quality: str = "full",
 ) -> FileOutcome:
     """Process one photograph into `out_root/<name>/`; never raises for a bad file.
 
@@ -757,8 +778,11 @@ def process_file(
     `capture.recording.RerunRecorder` kept open by the caller, e.g. one serving a viewer or a
     tethered session) is used instead and left open. `pipeline` replaces
     `processing.pipeline.run_pipeline` (tests); `on_stage(name)` is called as each of `STAGES` finishes.
+    `quality` ("full" or "preview", `capture.api.QUALITIES`) picks the pipeline's parameters; it is part of
+    the settings key and of result.json's `settings`, so a preview result never passes for a full one.
     """
     started = time.perf_counter()
+    api.check_quality(quality)
     input_path = Path(input_path)
     planned = output_dir_for(input_path, Path(out_root), out_name)
 
@@ -783,7 +807,8 @@ def process_file(
         with output_folders.claim_folder(root, planned.name, source) as claim:
             out_dir = claim.final
             if not force:
-                finished = _unchanged_reason(claim.existing_result(), source, settings_key(profile), profile, out_dir)
+                key = settings_key(profile, quality)
+                finished = _unchanged_reason(claim.existing_result(), source, key, profile, out_dir, quality)
                 if finished is not None:
                     return outcome("skipped", out_dir, reason=finished)
             staging = claim.new_staging()
@@ -799,8 +824,9 @@ def process_file(
                         shot_index=shot_index,
                         recording_id=recording_id,
                         live_recorder=recorder,
+                        quality=quality,
                     )
-                _stamp_result(staging / RESULT_NAME, source, settings_key(profile))
+                _stamp_result(staging / RESULT_NAME, source, settings_key(profile, quality))
                 claim.commit(staging)
             finally:
                 claim.discard(staging)  # gone after a commit; after a failure the previous result stays
@@ -822,6 +848,7 @@ def _process(
     shot_index: int = 0,
     recording_id: str | None = None,
     live_recorder: Any = None,
+    quality: str = "full",
 ) -> int:
     run = pipeline or _default_pipeline()
     timings: dict[str, float] = {}
@@ -844,7 +871,9 @@ def _process(
             recorder.log_input(loaded.frame)
         timer = _StageTimer(recorder, on_stage)
         t0 = time.perf_counter()
-        result = api.run_depth(loaded, profile, optics=optics, pipeline=run, recorder=timer)  # the Python API's path
+        result = api.run_depth(
+            loaded, profile, optics=optics, pipeline=run, recorder=timer, quality=quality
+        )  # the Python API's path
         timings.update(timer.timings_s)
         timings.update({k: float(v) for k, v in (result.timings_s or {}).items()})
         timings["pipeline"] = time.perf_counter() - t0
@@ -863,7 +892,9 @@ def _process(
         written.append(Path(record_path).name)
     timings["write"] = time.perf_counter() - t0
     _announce(on_stage, "write")
-    document = result_document(input_path, profile, result, loaded, labels_input, optics, written, timings)
+    document = result_document(
+        input_path, profile, result, loaded, labels_input, optics, written, timings, quality=quality
+    )
     outputs.write_json(out_dir / RESULT_NAME, document)
     return len(result.regions)
 
