@@ -123,12 +123,12 @@ def _median(values) -> float:
     return statistics.median(values) if values else float("nan")
 
 
-def make_sim(folder: Path, scene: str) -> tuple[Path, str]:
+def make_sim(folder: Path, scene: str, scale: float = 1.0) -> tuple[Path, str]:
     from mca.capture.profiles import load_profile
     from mca.capture.simulated_shots import render_scene, write_capture
 
     profile = load_profile("paper-70d")
-    capture = render_scene(scene, profile, size="full", seed=0)
+    capture = render_scene(scene, profile, size="full" if scale == 1.0 else scale, seed=0)
     return Path(write_capture(capture, profile, folder)["cr2"]), "paper-70d"
 
 
@@ -203,13 +203,14 @@ def report_input(label: str, data: dict, runs: int) -> None:
 
 
 def bench_batch(cr2: Path, files: int, work: Path) -> None:
+    """`mca process` over `files` copies of `cr2` with 1 and 2 workers (and 2 with unlimited threads)."""
     folder = work / "batch-in"
     folder.mkdir(exist_ok=True)
     for index in range(files):
         target = folder / f"shot_{index:03d}.CR2"
         if not target.exists():
             shutil.copyfile(cr2, target)
-    print(f"\n== throughput: `mca process` over {files} captures ({os.cpu_count()} cores) ==", flush=True)
+    print(f"\n== throughput: `mca process` over {files} copies of {cr2.name} ({os.cpu_count()} cores) ==", flush=True)
     configs = (
         ("--workers 1", 1, {}),
         ("--workers 2", 2, {}),
@@ -240,9 +241,13 @@ def main() -> None:
     parser.add_argument("--rgbd-scene", default="Art", help="the Middlebury scene rendered at 20 MP")
     parser.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "mca-bench", help="keeps the render")
     parser.add_argument("--no-batch", action="store_true")
+    parser.add_argument(
+        "--batch-scale", type=float, default=1.0, help="size of the batch's captures (1 = 20 MP; 0.5 = 5 MP, quicker)"
+    )
+    parser.add_argument("--only-batch", action="store_true", help="just the throughput figures")
     parser.add_argument("--no-rgbd", action="store_true")
     args = parser.parse_args()
-    runs, files = (2, 6) if args.quick else (args.runs, args.files)
+    runs, files = (2, min(6, args.files)) if args.quick else (args.runs, args.files)
 
     print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}")
     with tempfile.TemporaryDirectory(prefix="bench_process_") as tmp:
@@ -250,15 +255,18 @@ def main() -> None:
         start = time.perf_counter()
         sim, sim_profile = make_sim(work / "sim", args.scene)
         print(f"simulated {args.scene} in {time.perf_counter() - start:.1f} s")
-        inputs = [(f"sim {args.scene}", sim, sim_profile)]
-        if not args.no_rgbd:
+        inputs = [] if args.only_batch else [(f"sim {args.scene}", sim, sim_profile)]
+        if not (args.no_rgbd or args.only_batch):
             rgbd, rgbd_profile = make_rgbd(args.cache, args.rgbd_scene)
             inputs.append((f"rgbd {args.rgbd_scene}", rgbd, rgbd_profile))
         results = {label: bench_input(label.split()[0], cr2, prof, runs, work) for label, cr2, prof in inputs}
         for label, data in results.items():
             report_input(label, data, runs)
         if not args.no_batch:
-            bench_batch(sim, files, work)
+            batch_input = sim
+            if args.batch_scale != 1.0:
+                batch_input, _ = make_sim(work / "batch-sim", args.scene, args.batch_scale)
+            bench_batch(batch_input, files, work)
     print(f"\nload average at the end {os.getloadavg()[0]:.1f}")
 
 
