@@ -172,7 +172,8 @@ def bench_input(label: str, cr2: Path, profile: str, runs: int, work: Path) -> d
         rows.append(row)
         walls = ", ".join(f"{name} {row[name]['wall']:.2f} s" for name in variants)
         print(f"  run {run + 1}/{runs}: {walls}, SGBM {row['sgbm']:.2f} s, LibRaw {row['libraw']:.2f} s", flush=True)
-    sizes = {p.relative_to(out).as_posix(): p.stat().st_size for p in sorted(out.rglob("*")) if p.is_file()}
+    folder = out / cr2.stem
+    sizes = {p.relative_to(folder).as_posix(): p.stat().st_size for p in sorted(folder.rglob("*")) if p.is_file()}
     return {"rows": rows, "sizes": sizes}
 
 
@@ -199,7 +200,9 @@ def report_input(label: str, data: dict, runs: int) -> None:
             f"  {name:<9} mca process / SGBM {over_sgbm:5.2f}x  (pipeline alone {pipeline:4.2f}x),  "
             f"/ LibRaw unpack {over_libraw:5.2f}x"
         )
-    print("  outputs (bytes): " + ", ".join(f"{k} {v:,}" for k, v in data["sizes"].items() if "/" not in k))
+    layers = sum(v for k, v in data["sizes"].items() if k.startswith("layers/"))
+    files = ", ".join(f"{k} {v:,}" for k, v in data["sizes"].items() if not k.startswith("layers/"))
+    print(f"  outputs (bytes): {files}, layers/ {layers:,}")
 
 
 def bench_batch(cr2: Path, files: int, work: Path) -> None:
