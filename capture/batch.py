@@ -15,6 +15,7 @@ import concurrent.futures
 import errno
 import multiprocessing
 import os
+import shutil
 import stat
 import sys
 import time
@@ -542,6 +543,7 @@ class BatchReport:
 
     outcomes: list[FileOutcome] = field(default_factory=list)
     recording: Path | None = None
+    recording_error: str | None = None  # the recording could not be written (the results are unaffected)
     interrupted: bool = False
 
     @property
@@ -661,7 +663,8 @@ def run_batch(
         max_megapixels=max_megapixels,
         quality=quality,
     )
-    recording_id = str(uuid.uuid4()) if record is not None else None
+    recording_id = batch_recording_id(Path(record)) if record is not None else None
+    parts = out_root / f".mca-recording-parts-{uuid.uuid4().hex[:12]}" if record is not None else None
     names: dict[str, Path] = {}
     known: dict[Path, tuple[int, int] | None] = {}  # path -> (size, mtime) when taken
     passed_over: set[Path] = set()
@@ -706,7 +709,7 @@ def run_batch(
                 Task(
                     path,
                     name,
-                    out_root / name / RECORDING_NAME if record else None,
+                    parts / f"{shots:06d}-{name}.rrd" if parts is not None else None,
                     shot_index=shots,
                     recording_id=recording_id,
                 )
@@ -766,8 +769,11 @@ def run_batch(
         progress.close()
         runner.close()
 
-    if record is not None:
-        report.recording = merge_batch_recordings(finished_tasks, report.outcomes, Path(record))
+    if record is not None and parts is not None:
+        try:
+            report.recording = merge_batch_recordings(finished_tasks, report.outcomes, Path(record), parts)
+        except BatchError as exc:
+            report.recording_error = str(exc)
     return report
 
 
@@ -780,22 +786,63 @@ def runner_failed(out_root: Path, task: Task, reason: str) -> FileOutcome:
     )
 
 
-def merge_batch_recordings(tasks: list[Task], outcomes: list[FileOutcome], out_path: Path) -> Path | None:
-    """Merge the per-file recordings of the finished (done or skipped) files, in folder-name order, into
-    `out_path`. Each is read from the folder the file's outputs went to (`FileOutcome.output_dir`)."""
-    recorded = {t.input_path: t.record_path.name for t in tasks if t.record_path is not None}
-    found = {
-        o.output_dir / recorded[o.input_path]
-        for o in outcomes
-        if o.status != "failed" and o.input_path in recorded and (o.output_dir / recorded[o.input_path]).is_file()
-    }
-    paths = sorted(found, key=lambda p: p.parent.name)
-    if not paths:
-        return None
-    from mca.capture.recording import merge_recordings
+def batch_recording_id(record: Path) -> str:
+    """The rerun recording id of a batch's `--record` file: the same for every run into that file, so a resumed
+    batch's new shots and the shots kept from the earlier run are one recording (one `shot` timeline)."""
+    return str(uuid.uuid5(uuid.NAMESPACE_URL, "mca-batch-recording:" + os.path.realpath(record)))
 
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    merge_recordings(paths, out_path)
+
+def merge_batch_recordings(
+    tasks: list[Task], outcomes: list[FileOutcome], out_path: Path, parts: Path | None = None
+) -> Path | None:
+    """Merge the recordings of the files this batch processed, in shot order, into `out_path`: the one copy.
+
+    Each file records into its own part (`Task.record_path`, in the hidden folder `parts`); once merged the
+    parts are deleted, so every shot's recording is stored once, in `out_path`. Shots this batch skipped
+    (unchanged since an earlier run) are in the earlier `out_path` when it exists: it is merged in too (same
+    recording id, `batch_recording_id`). Result folders of older versions that hold a `recording.rrd` of
+    their own are merged for their skipped shots when there is no earlier `out_path`. If the merge fails
+    the parts are kept and the error names them.
+    """
+    status = {o.input_path: o for o in outcomes}
+    new_parts = sorted(
+        (
+            t.record_path
+            for t in tasks
+            if t.record_path is not None
+            and t.input_path in status
+            and status[t.input_path].status == "done"
+            and t.record_path.is_file()
+        ),
+        key=lambda p: p.name,
+    )
+    skipped = [o for o in outcomes if o.status == "skipped" and any(t.input_path == o.input_path for t in tasks)]
+    earlier: list[Path] = []
+    if skipped and out_path.is_file():
+        earlier = [out_path]
+    elif skipped:  # an older layout: each result folder kept its own recording
+        earlier = sorted(
+            (o.output_dir / RECORDING_NAME for o in skipped if (o.output_dir / RECORDING_NAME).is_file()),
+            key=lambda p: p.parent.name,
+        )
+    paths = earlier + new_parts
+    if not paths:
+        if parts is not None:
+            shutil.rmtree(parts, ignore_errors=True)  # only parts of failed files, if any
+        return None
+    try:
+        out_path.parent.mkdir(parents=True, exist_ok=True)
+        if paths == new_parts and len(new_parts) == 1:
+            os.replace(new_parts[0], out_path)  # one shot: its part is the recording
+        else:
+            from mca.capture.recording import merge_recordings
+
+            merge_recordings(paths, out_path)
+    except (OSError, RuntimeError) as exc:
+        where = f"; the recordings of the shots are kept in {parts}" if parts is not None and new_parts else ""
+        raise BatchError(f"cannot write the recording {out_path}: {exc}{where}") from exc
+    if parts is not None:
+        shutil.rmtree(parts, ignore_errors=True)
     return out_path
 
 

@@ -1,6 +1,7 @@
 """The shot catalog `DIR/catalog.sqlite`: one row per shot with its file, size, sha256, times and status.
 
-Schema version 1 (kept in the `schema_versions` table, row `shots`):
+Schema version 1 (kept in the `schema_versions` table, row `shots`; the table `releases` holds releases in
+flight, see `add_release`):
 
 - times are UTC with their offset, to the millisecond (`2024-05-01T10:15:02.123+00:00`);
 - `file_name` and `result_path` are relative to the catalog's folder when they lie inside it
@@ -50,6 +51,17 @@ CREATE TABLE IF NOT EXISTS shots (
 """
 _VERSIONS = """
 CREATE TABLE IF NOT EXISTS schema_versions (name TEXT PRIMARY KEY, version INTEGER NOT NULL);
+"""
+# Releases in flight: written before the shutter is released, removed once the shot's files are in `shots`.
+# A row left behind (the run was killed or interrupted in between) names the card as it was before that
+# release, so the next connection catalogues the files the release made (`Catalog.pending_releases`).
+_RELEASES = """
+CREATE TABLE IF NOT EXISTS releases (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    camera_serial TEXT NOT NULL,
+    released_at TEXT NOT NULL,
+    card_handles TEXT NOT NULL
+);
 """
 _TIME_COLUMNS = ("captured_at", "downloaded_at", "processed_at")
 RESERVE_BYTES = 1 << 20
@@ -136,7 +148,7 @@ class Catalog:
         self.folder = self.path.resolve().parent
         self.reserve = self.folder / f"{self.path.name}-reserve"  # beside SQLite's own -wal and -shm
         self._make_reserve()
-        self.db = open_database(self.path, _SHOTS + _VERSIONS)
+        self.db = open_database(self.path, _SHOTS + _VERSIONS + _RELEASES)
         self._migrate()
 
     # -- a full disk ---------------------------------------------------------------------------------------------
@@ -282,6 +294,26 @@ class Catalog:
 
     def update_handle(self, shot_id: int, handle: int) -> None:
         self._write("UPDATE shots SET camera_handle=? WHERE id=?", (handle, shot_id))
+
+    def add_release(self, camera_serial: str, card_handles: frozenset[int] | set[int]) -> int:
+        """Note a shutter release about to happen and the card's object handles before it (table `releases`)."""
+        cur = self._write(
+            "INSERT INTO releases (camera_serial, released_at, card_handles) VALUES (?, ?, ?)",
+            (camera_serial, _now(), ",".join(str(h) for h in sorted(card_handles))),
+        )
+        assert cur.lastrowid is not None
+        return int(cur.lastrowid)
+
+    def release_done(self, release_id: int) -> None:
+        """The release's files are in `shots` (or it made none): forget it."""
+        self._write("DELETE FROM releases WHERE id=?", (release_id,))
+
+    def pending_releases(self, camera_serial: str) -> list[tuple[int, frozenset[int]]]:
+        """Releases of this camera whose files never reached `shots`: (id, the card's handles before it)."""
+        cur = self.db.execute(
+            "SELECT id, card_handles FROM releases WHERE camera_serial=? ORDER BY id", (camera_serial,)
+        )
+        return [(int(i), frozenset(int(h) for h in text.split(",") if h)) for i, text in cur.fetchall()]
 
     # -- queries -------------------------------------------------------------------------------------------------
 

@@ -11,14 +11,12 @@ is switched off again and the camera closed in every case.
 
 from __future__ import annotations
 
-import socket
 import statistics
-import subprocess
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -27,6 +25,9 @@ from mca.devices.ptp.camera import Camera, CaptureError, PtpError
 from mca.devices.ptp.codec import ProtocolError
 from mca.devices.ptp.transport import TransportError
 from mca.processing.live_preview import LivePreviewParams, disparity_colours, live_disparity
+
+if TYPE_CHECKING:
+    from mca.capture.recording.serve import ViewerServer
 
 
 class LiveError(Exception):
@@ -51,12 +52,6 @@ def decode_jpeg(data: bytes) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 class LiveRecorder:
     """A rerun stream for live view: to a .rrd file, to a local web viewer (`serve`), or both."""
 
@@ -67,7 +62,7 @@ class LiveRecorder:
         import rerun as rr
 
         self._rr = rr
-        self._server: subprocess.Popen[bytes] | None = None
+        self._server: ViewerServer | None = None
         self.viewer_url: str | None = None
         self.stream = rr.RecordingStream("mca-live")
         sinks: list[Any] = []
@@ -81,34 +76,15 @@ class LiveRecorder:
         self.stream.set_sinks(*sinks)
 
     def _start_server(self) -> str:
-        from urllib.parse import quote
+        """The local web viewer, started as `mca process --serve` starts it (`capture.recording.serve`)."""
+        from mca.capture.recording.serve import start_viewer_server
 
-        from mca.capture.recording import child_environment, rerun_executable
-
-        exe = rerun_executable()
-        if exe is None:
-            raise LiveError("--serve needs the `rerun` command of rerun-sdk; reinstall with `pip install rerun-sdk`")
-        grpc_port, web_port = _free_port(), _free_port()
-        self._server = subprocess.Popen(
-            [exe, "--serve-web", "--bind", "127.0.0.1", "--port", str(grpc_port), "--web-viewer-port", str(web_port)],
-            env=child_environment(),
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-        )
-        deadline = time.monotonic() + 10.0
-        while True:
-            try:
-                socket.create_connection(("127.0.0.1", grpc_port), timeout=0.2).close()
-                break
-            except OSError:
-                if self._server.poll() is not None or time.monotonic() > deadline:
-                    self.close()
-                    raise LiveError(f"the rerun viewer server did not start on port {grpc_port}") from None
-                time.sleep(0.1)
-        url = f"rerun+http://127.0.0.1:{grpc_port}/proxy"
-        self.viewer_url = f"http://127.0.0.1:{web_port}/?url={quote(url, safe='')}"
-        return url
+        try:
+            self._server = start_viewer_server("127.0.0.1", None, None)
+        except RuntimeError as exc:
+            raise LiveError(str(exc)) from None
+        self.viewer_url = self._server.viewer_url
+        return self._server.grpc_url
 
     def log_frame(self, index: int, jpeg: bytes, preview_rgb: np.ndarray, confidence: np.ndarray, fps: float) -> None:
         rr = self._rr
@@ -124,12 +100,7 @@ class LiveRecorder:
             self.stream.disconnect()
         finally:
             if self._server is not None:
-                self._server.terminate()
-                try:
-                    self._server.wait(timeout=5)
-                except subprocess.TimeoutExpired:
-                    self._server.kill()
-                    self._server.wait(timeout=5)
+                self._server.stop()
                 self._server = None
 
 

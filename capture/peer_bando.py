@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from mca.processing.camera import FilterAperture
+from mca.processing.colour import srgb_encode
 
 ENV_VARIABLE = "MCA_BANDO_BIN"
 HALF_WINDOW = 7  # the program's SIZE argument: a 15x15 window, as in the paper's run.sh
@@ -86,8 +87,7 @@ def srgb8(planes: np.ndarray) -> np.ndarray:
     """Linear planes -> 8-bit sRGB, one gain for the whole image (99.5th percentile to white), as a camera would."""
     linear = np.clip(np.asarray(planes, np.float32), 0.0, None)
     white = float(np.percentile(linear, 99.5)) or 1.0
-    v = np.clip(linear / white, 0.0, 1.0)
-    encoded = np.where(v <= 0.0031308, 12.92 * v, 1.055 * np.power(v, 1.0 / 2.4) - 0.055)
+    encoded = srgb_encode(linear / white)  # clipped to [0, 1]; the curve of processing/colour.py
     return np.clip(np.rint(encoded * 255.0), 0, 255).astype(np.uint8)
 
 

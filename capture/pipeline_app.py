@@ -44,7 +44,7 @@ from mca.capture.raw import (
 )
 from mca.processing.camera import CameraProfile
 from mca.processing.colour import CameraColour
-from mca.processing.pinhole import SCENE_FRAME, PinholeCamera
+from mca.processing.pinhole import SCENE_FRAME, PinholeCamera, processing_pixel_edges
 from mca.processing.result import DepthResult
 
 SUPPORTED_SUFFIXES = frozenset(RAW_EXTENSIONS) | frozenset(IMAGE_EXTENSIONS)  # what `read_raw` reads
@@ -233,9 +233,9 @@ def region_quads(
         if texture is None:
             crop = (labels[box] == region.id).astype(np.uint8) * 255
             texture = outputs.encode_png(np.dstack([all_in_focus8[box], crop]))
-        # pixel edges in input-image coordinates (pixel centres at integers: edges at +-0.5)
-        left, right = c0 * result.pixel_scale - 0.5, c1 * result.pixel_scale - 0.5
-        top, bottom = r0 * result.pixel_scale - 0.5, r1 * result.pixel_scale - 0.5
+        # the box's outer pixel edges in input-image coordinates (processing/pinhole.py's convention)
+        left, right = processing_pixel_edges(np.array([c0, c1]), result.pixel_scale)
+        top, bottom = processing_pixel_edges(np.array([r0, r1]), result.pixel_scale)
         u = np.array([left, right, right, left])
         v = np.array([top, top, bottom, bottom])
         distances = np.full(4, float(z))

@@ -14,11 +14,14 @@ end a run are `TetherError`s with a message a user can act on.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import hashlib
 import os
 import re
+import signal
 import sqlite3
+import threading
 import time
 import unicodedata
 from collections.abc import Callable
@@ -27,6 +30,10 @@ from pathlib import Path
 from typing import Any
 
 from mca.capture.catalog import Catalog
+from mca.capture.file_names import FilenamePattern
+from mca.capture.hooks import HookScript
+from mca.devices import cameras
+from mca.devices.cameras import CameraFactory, SimRig
 from mca.devices.ptp.camera import (
     MAX_OBJECT_BYTES,
     Camera,
@@ -45,7 +52,6 @@ from mca.devices.ptp.codes import ObjectFormat
 from mca.devices.ptp.policy import DEFAULT_POLICY, PtpPolicy
 from mca.devices.ptp.transport import DeviceDisconnected, TransportError
 
-CameraFactory = Callable[[], Camera]
 MAX_FILENAME_CHARS = 100
 RETRIES = 6
 RAW_SUFFIXES = (".CR2", ".CR3", ".DNG", ".TIF", ".TIFF")
@@ -86,6 +92,41 @@ def default_sim_frame_source(size: str | float | None = None, profile_name: str 
     return frame
 
 
+# -- Ctrl-C between two writes that belong together ------------------------
+class DeferredInterrupt:
+    """Within `with DeferredInterrupt() as d:` a Ctrl-C (SIGINT) is held back until the block ends, then raised
+    (`KeyboardInterrupt`, or the handler that was installed); `d.requested` says one arrived, so a wait inside
+    can end early. For the few steps that must not be split: a file taken from the camera's event queue and
+    its catalog row, a file renamed into place and its row saying so. Outside the main thread it does nothing
+    (signals reach only the main thread)."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._previous: Any = None
+        self._active = False
+
+    def __enter__(self) -> DeferredInterrupt:
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.getsignal(signal.SIGINT)
+            signal.signal(signal.SIGINT, self._note)
+            self._active = True
+        return self
+
+    def _note(self, signum: int, frame: Any) -> None:
+        self.requested = True
+
+    def __exit__(self, *exc: object) -> None:
+        if not self._active:
+            return
+        signal.signal(signal.SIGINT, self._previous)
+        self._active = False
+        if self.requested and exc[0] is None:
+            if callable(self._previous):
+                self._previous(signal.SIGINT, None)
+            elif self._previous == signal.SIG_DFL:
+                raise KeyboardInterrupt
+
+
 # -- untrusted names --------------------------------------------------------
 _UNSAFE = re.compile(r"[^A-Za-z0-9._+\-]")
 
@@ -124,13 +165,8 @@ def _safe_target(out_dir: Path, name: str) -> Path:
 
 
 # -- opening cameras --------------------------------------------------------
-@dataclass
-class SimRig:
-    """The simulated camera and the USB backend it is reached through (kept so a reconnect finds it again)."""
-
-    camera: Any
-    backend: Any
-    scenario: str = "none"
+# The spec parser and the simulated rig live in devices/cameras.py (`open_camera`, beside `open_rail`);
+# the application adds what the simulated EOS 70D photographs: the MCA simulator's scenes.
 
 
 def make_sim_rig(
@@ -141,75 +177,33 @@ def make_sim_rig(
     scenario: str | None = None,
     live_view_source: Callable[[int], bytes] | None = None,
 ) -> SimRig:
-    """The simulated EOS 70D on a simulated USB bus; `scenario` names a fault scenario (`faults.SCENARIOS`)."""
-    from mca.devices.sim_eos70d.faults import scenario as named_scenario
-    from mca.devices.sim_eos70d.responder import SimEos70D
-    from mca.devices.sim_eos70d.usb_backend import SimUsbBackend
-
-    chosen = named_scenario(scenario or "none")
+    """The simulated EOS 70D on a simulated USB bus, photographing the paper's scenes (`default_sim_frame_source`)
+    and showing a rendered scene in live view; `scenario` names a fault scenario (`faults.SCENARIOS`)."""
     if live_view_source is None:
         from mca.capture.live import scene_live_view_source
 
         live_view_source = scene_live_view_source()  # rendered on the first live-view frame asked for
-    sim = SimEos70D(
-        frame_source or default_sim_frame_source(), behaviour=chosen.behaviour, live_view_source=live_view_source
+    return cameras.make_sim_rig(
+        frame_source or default_sim_frame_source(),
+        faults=faults,
+        pace_bytes_per_s=pace_bytes_per_s,
+        scenario=scenario,
+        live_view_source=live_view_source,
     )
-    plan = faults if faults is not None else chosen.faults
-    return SimRig(sim, SimUsbBackend(sim, faults=plan, pace_bytes_per_s=pace_bytes_per_s), chosen.name)
-
-
-def _policy_for(timeout_s: float | None, policy: PtpPolicy | None) -> PtpPolicy:
-    chosen = policy or DEFAULT_POLICY
-    if timeout_s is not None:
-        chosen = replace(chosen, transaction_timeout_s=timeout_s)
-    return chosen
 
 
 def camera_factory(
-    spec: str, *, rig: SimRig | None = None, timeout_s: float | None = None, policy: PtpPolicy | None = None
+    spec: str,
+    *,
+    rig: SimRig | None = None,
+    timeout_s: float | None = None,
+    policy: PtpPolicy | None = None,
+    traffic_log: Callable[[str], None] | None = None,
 ) -> CameraFactory:
-    """A function that opens the camera named by `auto`, `sim[:SCENARIO]`, `usb:BUS:ADDR` or `ptpip:HOST[:PORT]`.
-
-    `timeout_s` overrides the policy's transaction timeout (tests shorten it).
-    """
-    from mca.devices.ptp.transport_usb import UsbTransport, find_cameras, open_usb
-
-    chosen = _policy_for(timeout_s, policy)
-    if spec == "sim" or spec.startswith("sim:"):
-        rig = rig or make_sim_rig(scenario=spec.partition(":")[2] or None)
-
-        def open_sim() -> Camera:
-            if not rig.backend.connected:
-                rig.backend.replug()  # the simulated photographer plugs the cable back in
-            cams = find_cameras(rig.backend)
-            return Camera.open(UsbTransport(cams[0], policy=chosen), policy=chosen)
-
-        open_sim.rig = rig  # type: ignore[attr-defined]
-        return open_sim
-    if spec.startswith("ptpip:"):
-        from mca.devices.ptp.transport_ptpip import PtpIpTransport
-
-        host, _, port = spec[len("ptpip:") :].partition(":")
-        try:
-            port_number = int(port or 15740)
-        except ValueError as exc:
-            raise ValueError(f"PTP/IP port must be a number, got {port!r} in {spec!r}") from exc
-        return lambda: Camera.open(PtpIpTransport(host or "127.0.0.1", port_number, policy=chosen), policy=chosen)
-    if spec.startswith("usb:"):
-        return lambda: Camera.open(open_usb(spec, policy=chosen), policy=chosen)
-    if spec == "auto":
-
-        def open_auto() -> Camera:
-            cams = find_cameras()
-            if not cams:
-                raise TransportError(
-                    "no PTP camera on USB: connect and switch on the EOS 70D, "
-                    "or use `--camera sim` for the simulated one"
-                )
-            return Camera.open(UsbTransport(cams[0], policy=chosen), policy=chosen)
-
-        return open_auto
-    raise ValueError(f"unknown camera {spec!r}: use auto, sim, sim:SCENARIO, usb:BUS:ADDR or ptpip:HOST:PORT")
+    """`devices.cameras.open_camera`, with `sim` photographing the paper's scenes (this module's `make_sim_rig`)."""
+    if cameras.is_sim(spec) and rig is None:
+        rig = make_sim_rig(scenario=spec.partition(":")[2] or None)
+    return cameras.open_camera(spec, rig=rig, timeout_s=timeout_s, policy=policy, traffic_log=traffic_log)
 
 
 # -- the session ------------------------------------------------------------
@@ -222,6 +216,8 @@ class ShotResult:
     path: Path | None
     status: str
     message: str = ""
+    size_bytes: int | None = None  # of the file on disk
+    download_s: float | None = None  # how long its download took
 
 
 class _HashingWriter:
@@ -252,6 +248,9 @@ class TetherSession:
         progress: Callable[[int, int], None] | None = None,
         capture_target: str | None = "card",
         policy: PtpPolicy = DEFAULT_POLICY,
+        filename_pattern: FilenamePattern | None = None,
+        hook: HookScript | None = None,
+        on_result: Callable[[ShotResult], None] | None = None,
     ) -> None:
         self.factory = factory
         self.out_dir = Path(out_dir)
@@ -279,8 +278,12 @@ class TetherSession:
         self.quality = quality  # with `process`: "full" or "preview" (capture.api.QUALITIES)
         self.record = record
         self.log = log
+        self.recording_error: str | None = None  # set by close() when the recording could not be written out
         self.progress = progress
         self.capture_target = capture_target
+        self.filename_pattern = filename_pattern
+        self.hook = hook
+        self.on_result = on_result  # told of every file's outcome as it lands (the CLI prints each shot)
         self.camera: Camera | None = None
         self.reconnects = 0
         self.results: list[ShotResult] = []  # every file of this run, in order (also after Ctrl-C)
@@ -288,6 +291,7 @@ class TetherSession:
         self._seen: set[tuple[str, int, bool]] = set()  # (camera file name, handle, in RAM) stored this run
         self._profile_obj: Any = None
         self._recorder: Any = None
+        self._release_id: int | None = None  # this run's release in flight (catalog table `releases`)
 
     # connection ------------------------------------------------------------
     def connect(self) -> Camera:
@@ -332,9 +336,15 @@ class TetherSession:
         return self._recorder
 
     def close(self) -> None:
+        """Close the recording, the camera and the catalog. A recording cut short by a full disk is reported
+        through `log` and kept in `recording_error` (the shots and the catalog are safe); the rest still closes."""
         if self._recorder is not None:
-            self._recorder.close()
-            self._recorder = None
+            recorder, self._recorder = self._recorder, None
+            try:
+                recorder.close()
+            except OSError as exc:  # RecordingWriteError: names the .rrd file and what to do
+                self.recording_error = str(exc)
+                self.log(f"error: {exc}")
         if self.camera is not None:
             try:
                 self.camera.close()
@@ -377,7 +387,7 @@ class TetherSession:
         for attempt in range(RETRIES):
             cam = self._cam()
             try:
-                return cam.trigger()
+                return cam.trigger(before_release=self._note_release)
             except (ReleaseRefused, ReleaseUncertain):
                 raise
             except CameraNotReady as exc:
@@ -401,6 +411,24 @@ class TetherSession:
                     self.reconnects += 1
         raise TetherError(f"could not get the camera ready to shoot: {last}")
 
+    def _note_release(self, ticket: CaptureTicket) -> None:
+        """Before the shutter goes: note the release and the card as it is, so that a run killed before the new
+        files are catalogued leaves a trace the next connection follows (`_adopt_released`)."""
+        if ticket.card_handles is None:
+            return  # shots to the camera's RAM: lost with the session, nothing to find on the card later
+        try:
+            if self._release_id is not None:  # an attempt that stopped before its release
+                self.catalog.release_done(self._release_id)
+                self._release_id = None
+            self._release_id = self.catalog.add_release(ticket.serial_number, ticket.card_handles)
+        except sqlite3.Error as exc:
+            raise ReleaseRefused(f"not released: the catalog cannot note the release ({exc})") from exc
+
+    def _release_finished(self) -> None:
+        if self._release_id is not None:
+            self.catalog.release_done(self._release_id)
+            self._release_id = None
+
     def capture(self, count: int = 1, interval_s: float = 0.0) -> list[ShotResult]:
         """Take `count` pictures: one release each; every file a release made is downloaded (RAW+JPEG: both)."""
         results: list[ShotResult] = []
@@ -416,6 +444,7 @@ class TetherSession:
             ticket = self._trigger()
         except ReleaseRefused as exc:
             self.log(str(exc))
+            self._release_finished()
             return [self._note(ShotResult(None, None, "refused", str(exc)))]
         except ReleaseUncertain as exc:
             self.log(str(exc))
@@ -425,38 +454,45 @@ class TetherSession:
         try:
             objects = self._retrying("waiting for the new file", lambda cam: cam.wait_for_capture(ticket))
         except CaptureError as exc:
-            self.log(str(exc))
+            self.log(str(exc))  # the release row stays: the next connection looks for what it made
             return [self._note(ShotResult(None, None, "failed", str(exc)))]
-        out = [self._store_new(obj) for obj in objects]
-        out += self._store_unclaimed()
-        return [r for r in out if r is not None]
+        with DeferredInterrupt():  # the files the release made and their catalog rows, with no Ctrl-C between
+            catalogued = [(obj, self._catalogue(obj)) for obj in objects]
+            catalogued += self._catalogue_unclaimed()
+            self._release_finished()
+        return [self._note(self._fetch(shot_id, obj)) for obj, shot_id in catalogued if shot_id is not None]
 
-    def _store_unclaimed(self) -> list[ShotResult]:
+    def _catalogue_unclaimed(self) -> list[tuple[CapturedObject, int | None]]:
         """Files that appeared without our release (the camera's own shutter button) are kept too."""
         cam = self.camera
         out = []
         while cam is not None and cam.unclaimed:
-            result = self._store_new(cam.unclaimed.pop(0))
-            if result is not None:
-                out.append(result)
+            obj = cam.unclaimed.pop(0)
+            out.append((obj, self._catalogue(obj)))
         return out
 
     def tethered(self, stop: Callable[[], bool], *, max_shots: int | None = None) -> list[ShotResult]:
         """Download each shot taken with the camera's own shutter button until `stop()` (or `max_shots`)."""
         results: list[ShotResult] = []
         while not stop() and (max_shots is None or len(results) < max_shots):
-            obj = self._retrying("waiting for a shot", lambda cam: cam.wait_for_object(0.5, stop=stop))
-            if obj is not None:
-                result = self._store_new(obj)
-                if result is not None:
-                    results.append(result)
+            # a file taken from the camera's event queue gets its catalog row before a Ctrl-C is let through
+            with DeferredInterrupt() as held:
+                obj = self._retrying(
+                    "waiting for a shot", lambda cam: cam.wait_for_object(0.5, stop=lambda: stop() or held.requested)
+                )
+                shot_id = self._catalogue(obj) if obj is not None else None
+            if obj is not None and shot_id is not None:
+                results.append(self._note(self._fetch(shot_id, obj)))
         return results
 
     def _note(self, result: ShotResult) -> ShotResult:
         self.results.append(result)
+        if self.on_result is not None:
+            self.on_result(result)
         return result
 
-    def _store_new(self, obj: CapturedObject) -> ShotResult | None:
+    def _catalogue(self, obj: CapturedObject) -> int | None:
+        """The catalog row of a new file (None: this run has it already)."""
         key = (obj.filename, obj.handle, obj.in_ram)
         if key in self._seen:
             return None
@@ -464,9 +500,10 @@ class TetherSession:
         serial = self._cam().serial_number
         shot_id = self.catalog.add_captured(serial, obj.filename, obj.handle, obj.size_bytes)
         self.shot_ids.append(shot_id)
-        return self._note(self._fetch(shot_id, obj))
+        return shot_id
 
     def _fetch(self, shot_id: int, obj: CapturedObject) -> ShotResult:
+        started = time.monotonic()
         try:
             path = self._retrying(f"download of {obj.filename}", lambda cam: self._download(cam, shot_id, obj))
         except (TetherError, ValueError, OSError) as exc:
@@ -476,9 +513,33 @@ class TetherSession:
                 return ShotResult(shot_id, None, "captured", f"still on the camera's card: {message}")
             self.catalog.mark_failed(shot_id, message)
             return ShotResult(shot_id, None, "failed", message)
+        took_s = time.monotonic() - started
+        size = path.stat().st_size if path.is_file() else None
+        if not self._run_hook(shot_id, path):
+            return ShotResult(shot_id, path, "downloaded", "the hook script moved or deleted it", size, took_s)
         if self.process and self.catalog.get(shot_id).status == "downloaded" and _is_raw(path):
-            return self._process(shot_id, path)
-        return ShotResult(shot_id, path, "downloaded")
+            return replace(self._process(shot_id, path), size_bytes=size, download_s=took_s)
+        return ShotResult(shot_id, path, "downloaded", "", size, took_s)
+
+    def _run_hook(self, shot_id: int, path: Path) -> bool:
+        """Run `--hook-script` with ACTION=download for a stored file; False when the file is gone after it."""
+        if self.hook is None:
+            return True
+        failure = self.hook.run(
+            "download",
+            str(path),
+            {"MCA_SHOT_ID": str(shot_id), "MCA_CATALOG": str(self.catalog.path), "MCA_OUT_DIR": str(self.out_dir)},
+        )
+        if failure is not None:
+            self.log(str(failure))
+        if path.is_file():
+            return True
+        from mca.capture.hooks import HookFailure
+
+        gone = HookFailure("download", str(path), "the file is no longer there after the hook ran (moved or deleted)")
+        self.hook.failures.append(gone)
+        self.log(str(gone))
+        return False
 
     def _download(self, cam: Camera, shot_id: int, obj: CapturedObject) -> Path:
         row = self.catalog.get(shot_id)
@@ -494,32 +555,37 @@ class TetherSession:
             raise ValueError(
                 f"{cam.name} reports {expected} bytes for {obj.filename!r}; refusing (limit {MAX_OBJECT_BYTES})"
             )
-        name = sanitize_filename(obj.filename, self.catalog.file_names() | set(os.listdir(self.out_dir)))
+        wanted = obj.filename
+        if self.filename_pattern is not None:
+            wanted = self.filename_pattern.name_for(shot_id, obj.filename)
+        name = sanitize_filename(wanted, self.catalog.file_names() | set(os.listdir(self.out_dir)))
         final = _safe_target(self.out_dir, name)
         tmp = _safe_target(self.out_dir, f".{name}.part")
         renamed = False
-        try:
-            with open(tmp, "wb") as fh:
-                writer = _HashingWriter(fh)
-                cam.download(handle, expected, writer, progress=self.progress)  # type: ignore[arg-type]
-                fh.flush()
-                os.fsync(fh.fileno())
-            if writer.size_bytes != expected or tmp.stat().st_size != expected:
-                raise ProtocolError(
-                    f"{cam.name} sent {writer.size_bytes} bytes for {obj.filename!r}, ObjectInfo says {expected}"
-                )
-            os.replace(tmp, final)
-            renamed = True
-        finally:
-            if not renamed:
-                tmp.unlink(missing_ok=True)  # a full disk or a failed link leaves no .part behind
-        dir_fd = os.open(self.out_dir, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
-        digest = writer.sha.hexdigest()
-        self.catalog.mark_downloaded(shot_id, name, expected, digest)
+        with contextlib.ExitStack() as held:
+            try:
+                with open(tmp, "wb") as fh:
+                    writer = _HashingWriter(fh)
+                    cam.download(handle, expected, writer, progress=self.progress)  # type: ignore[arg-type]
+                    fh.flush()
+                    os.fsync(fh.fileno())
+                if writer.size_bytes != expected or tmp.stat().st_size != expected:
+                    raise ProtocolError(
+                        f"{cam.name} sent {writer.size_bytes} bytes for {obj.filename!r}, ObjectInfo says {expected}"
+                    )
+                held.enter_context(DeferredInterrupt())  # the file in place and its row saying so: not split
+                os.replace(tmp, final)
+                renamed = True
+            finally:
+                if not renamed:
+                    tmp.unlink(missing_ok=True)  # a full disk or a failed link leaves no .part behind
+            dir_fd = os.open(self.out_dir, os.O_RDONLY)
+            try:
+                os.fsync(dir_fd)
+            finally:
+                os.close(dir_fd)
+            digest = writer.sha.hexdigest()
+            self.catalog.mark_downloaded(shot_id, name, expected, digest)
         if obj.in_ram:
             cam.transfer_complete(handle)
         elif self.delete_after_verify and _sha256_file(final) == digest:
@@ -544,6 +610,7 @@ class TetherSession:
         cam = self.camera
         if cam is None:
             return []
+        self._adopt_released(cam)
         results = []
         for row in self.catalog.missing(cam.serial_number):
             obj = CapturedObject(row.camera_handle or 0, row.camera_filename, row.size_bytes or 0, 0, 0, False)
@@ -553,6 +620,24 @@ class TetherSession:
             self._seen.add((obj.filename, obj.handle, False))
             results.append(self._note(self._fetch(row.id, obj)))
         return results
+
+    def _adopt_released(self, cam: Camera) -> None:
+        """Catalog the files of releases an earlier run made but never catalogued (killed or interrupted between
+        the release and the catalog row): files on the card that were not there before such a release and that
+        the catalog does not know. `recover_missing` then downloads them like any other pending shot."""
+        pending = [
+            (rid, before) for rid, before in self.catalog.pending_releases(cam.serial_number) if rid != self._release_id
+        ]
+        if not pending:
+            return
+        card = [(h, info) for h, info in cam.files() if info.object_format != ObjectFormat.ASSOCIATION]
+        for release_id, before in pending:
+            for handle, info in card:
+                if handle in before or self.catalog.has_camera_file(cam.serial_number, info.filename):
+                    continue
+                self.log(f"cataloguing {info.filename}: released by an earlier run that stopped before noting it")
+                self.catalog.add_captured(cam.serial_number, info.filename, handle, info.compressed_size_bytes)
+            self.catalog.release_done(release_id)
 
     def _process(self, shot_id: int, path: Path) -> ShotResult:
         try:

@@ -78,6 +78,21 @@ class SimGrbl:
     at power-up; homing travels that far at the seek rate `$25`.
     """
 
+    # the controller's state, set by _reset_state (power-up, soft reset)
+    state: str
+    _critical: bool
+    _rx: bytearray
+    _rx_overflow: bool
+    _lines: collections.deque[bytes | None]
+    _queue: collections.deque[_Segment]
+    _moving_from: tuple[float, float] | None  # (start x, sim time) of the head segment
+    _homing_done_at: float
+    _waiting_sync: bool
+    _absolute: bool
+    _feed_mm_per_min: float | None
+    _modal_motion: int
+    _reports: int
+
     def __init__(
         self,
         settings: dict[int, float] | None = None,
@@ -168,9 +183,9 @@ class SimGrbl:
         self._critical = False
         self._rx = bytearray()
         self._rx_overflow = False
-        self._lines: collections.deque[bytes | None] = collections.deque()
-        self._queue: collections.deque[_Segment] = collections.deque()
-        self._moving_from: tuple[float, float] | None = None  # (start x, sim time) of the head segment
+        self._lines = collections.deque()
+        self._queue = collections.deque()
+        self._moving_from = None
         self._homing_done_at = 0.0
         self._waiting_sync = False
         self._absolute = True
@@ -432,7 +447,8 @@ class SimGrblPty:
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
-        self._master = self._slave = None
+        self._master: int | None = None
+        self._slave: int | None = None
         self._tty_name = ""
         self.muted = False
 
@@ -440,17 +456,23 @@ class SimGrblPty:
     def port(self) -> str:
         return str(self._link) if self._link is not None else self._tty_name
 
+    def _master_fd(self) -> int:
+        if self._master is None:
+            raise OSError(f"the simulated GRBL pty {self.port or '(not started)'} is not open: call start() first")
+        return self._master
+
     def start(self) -> SimGrblPty:
         """Open a pty, power the controller up (banner) and serve it."""
-        self._master, self._slave = os.openpty()
-        tty.setraw(self._slave)
-        self._tty_name = os.ttyname(self._slave)
+        master, slave = os.openpty()
+        self._master, self._slave = master, slave
+        tty.setraw(slave)
+        self._tty_name = os.ttyname(slave)
         if self._link is not None:
             if self._link.is_symlink() or self._link.exists():
                 self._link.unlink()
             self._link.symlink_to(self._tty_name)
         with self._lock:
-            os.write(self._master, self.sim.power_up())
+            os.write(master, self.sim.power_up())
         self._stop.clear()
         self._thread = threading.Thread(target=self._serve, name=f"sim-grbl {self._tty_name}", daemon=True)
         self._thread.start()
@@ -481,7 +503,7 @@ class SimGrblPty:
     def inject(self, data: bytes) -> None:
         """Put raw bytes on the line toward the host (noise, a wrong-baud device)."""
         with self._lock:
-            os.write(self._master, data)
+            os.write(self._master_fd(), data)
 
     def mute(self, muted: bool = True) -> None:
         """Stop answering (hung firmware) while keeping the port open."""
@@ -489,7 +511,7 @@ class SimGrblPty:
 
     def trigger_alarm(self, code: int) -> None:
         with self._lock:
-            os.write(self._master, self.sim.trigger_alarm(code))
+            os.write(self._master_fd(), self.sim.trigger_alarm(code))
 
     def __enter__(self) -> SimGrblPty:
         return self.start()
@@ -500,7 +522,7 @@ class SimGrblPty:
             self._link.unlink()
 
     def _serve(self) -> None:
-        master = self._master
+        master = self._master_fd()
         while not self._stop.is_set():
             try:
                 readable, _, _ = select.select([master], [], [], 0.005)

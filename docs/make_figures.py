@@ -86,14 +86,19 @@ def main() -> None:
         seconds = result.timings_s["total"]
         tiles = [
             render(region_image(result), result.labels, f"{name}: ours, {len(result.regions)} regions"),
-            render(result.disparity_px, result.labels * 0, f"ours: dense disparity, {seconds:.1f} s"),
+            render(result.disparity_px, result.labels * 0, "ours: dense disparity"),
         ]
         if binary is not None:
             run = run_bando(binary, planes, profile.aperture, (-10.0, 20.0))
-            tiles.append(render(run.disparity_px, np.zeros_like(result.labels), f"Bando 2008, {run.seconds:.1f} s"))
-        row = np.hstack([cv2.resize(t, (360, int(360 * t.shape[0] / t.shape[1])), interpolation=cv2.INTER_AREA) for t in tiles])
+            tiles.append(render(run.disparity_px, np.zeros_like(result.labels), "Bando 2008 (graph cuts)"))
+        row = np.hstack(
+            [cv2.resize(t, (360, int(360 * t.shape[0] / t.shape[1])), interpolation=cv2.INTER_AREA) for t in tiles]
+        )
         rows.append(row)
-        print(f"{name}: {len(result.regions)} regions, {seconds:.1f} s" + ("" if binary else " (Bando's program not found)"))
+        print(
+            f"{name}: {len(result.regions)} regions, {seconds:.1f} s"
+            + ("" if binary else " (Bando's program not found)")
+        )
     width = max(r.shape[1] for r in rows)
     rows = [np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0))) for r in rows]
     grid = np.vstack([*rows, colour_bar(width)])

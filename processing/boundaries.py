@@ -60,7 +60,8 @@ def snap_boundaries(
 
     planes: (H, W, 3) linear planes; models: region id -> its disparity (H, W) float32 (extended beyond the
     region, e.g. its plane) on the same grid."""
-    labels = labels.astype(np.int32, copy=True)
+    original = labels.astype(np.int32)
+    labels = original.copy()
     height, width = labels.shape
     white = float(np.percentile(planes, 99.5)) or 1.0
     shifts = channel_shifts(aperture)
@@ -110,4 +111,8 @@ def snap_boundaries(
         if not changed.any():
             break
         labels[changed] = choice[changed]
+    lost = np.setdiff1d(np.unique(original), np.unique(labels))
+    if lost.size:  # a region is never snapped away entirely: it keeps its own pixels
+        back = np.isin(original, lost)
+        labels[back] = original[back]
     return labels

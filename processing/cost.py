@@ -82,7 +82,7 @@ def _sample_row_map(src: np.ndarray, y: int, disparity_row: np.ndarray, sx: floa
 
 
 @nb.njit(cache=True, fastmath=True)
-def _cost_map(bands, shifts, d, disparity, radius, eps, out):  # type: ignore[no-untyped-def]
+def _cost_map(bands, shifts, d, disparity, radius, eps, out):
     """Colour-line cost of every pixel (window (2 radius + 1)^2, clamped at the borders) with the channels
     sampled at x + d s_c, d the scalar `d` or, when `disparity` has rows, the per-pixel map; into `out` (h, w).
 

@@ -360,6 +360,7 @@ def colour_line_cost_rows(
         if out is None:
             out = np.empty((height, part.shape[1]), np.float32)
         out[y0:y1] = part[y0 - a0 : y1 - a0]
+    assert out is not None  # height > 2 * _STRIP_ROWS: the loop ran
     return out
 
 

@@ -49,6 +49,12 @@ def processing_pixel_centres(rows: np.ndarray, cols: np.ndarray, pixel_scale: fl
     return u, v
 
 
+def processing_pixel_edges(indices: np.ndarray, pixel_scale: float) -> np.ndarray:
+    """Input-image coordinates of processing-pixel edges: edge i is the leading edge of processing pixel i
+    (the trailing edge of pixel i - 1), at i * pixel_scale - 0.5 (pixel centres at integers)."""
+    return np.asarray(indices, dtype=np.float64) * pixel_scale - 0.5
+
+
 def strided_pixels(valid: np.ndarray, max_points: int) -> tuple[np.ndarray, np.ndarray]:
     """(rows, cols) of the True pixels of `valid` on the smallest regular stride that leaves at most `max_points`."""
     count = int(valid.sum())

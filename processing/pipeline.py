@@ -286,7 +286,7 @@ def run_pipeline(
             snapped = _upsample_labels(region_labels, factor, (height, width)).astype(np.uint16)
             moved = snapped != labels16
             if moved.any():
-                plane_of = np.zeros((int(snapped.max()) + 1, 3))
+                plane_of = np.zeros((max([int(snapped.max())] + [r.id for r in sketch.regions]) + 1, 3))
                 for r in sketch.regions:
                     plane_of[r.id] = rescale_plane(r.plane, factor) if factor > 1 else r.plane
                 model_proc[moved] = plane_map(snapped.astype(np.int32), plane_of)[moved]

@@ -50,6 +50,7 @@ import scipy.fft
 import scipy.ndimage
 
 from mca.processing.camera import CHANNELS, CameraProfile
+from mca.processing.colour import srgb_decode
 from mca.processing.simulate import BAYER_SITES, SensorModel, SimulationOptics, _expose, _Spectra
 
 SLICE_STEP_PX = 0.25  # largest red-blue disparity step between slices (px of the render)
@@ -57,14 +58,6 @@ OCCLUSION_GAP_PX = 1.0  # a slice hides another only when it is at least this mu
 
 
 # --- depth from stereo disparity --------------------------------------------------------------------------------
-
-
-def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 sRGB decoding of values in [0, 1]: c/12.92 up to 0.04045, else ((c+0.055)/1.055)^2.4."""
-    c = np.asarray(encoded, dtype=np.float32)
-    return np.where(
-        c <= 0.04045, c / np.float32(12.92), np.power((c + np.float32(0.055)) / np.float32(1.055), np.float32(2.4))
-    ).astype(np.float32)
 
 
 def fill_from_farther_neighbour(disparity: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -416,7 +409,7 @@ def render_rgbd(
         raise ValueError("the valid disparities are all equal: no depth to map")
     filled = fill_from_farther_neighbour(stereo_disparity, valid)
     distance = depth_range.distance_mm(filled, d_min, d_max)
-    radiance = srgb_to_linear(np.clip(image_srgb, 0.0, 1.0))
+    radiance = srgb_decode(np.clip(image_srgb, 0.0, 1.0))
     filter_images = render_filter_images(radiance, distance, optics, params)
     signal = sensor_signal(filter_images, realism, optics)
     rng = np.random.default_rng(seed)
@@ -524,7 +517,7 @@ def draw_scene_settings(rng: np.random.Generator, base: SensorModel = SensorMode
     crosstalk = None
     if rng.random() < CROSSTALK_SHARE:
         strength = float(rng.uniform(*CROSSTALK_RANGE))
-        rows = []
+        rows: list[tuple[float, float, float]] = []
         for i in range(3):
             split = rng.uniform(0.2, 0.8)
             leak = [strength * split, strength * (1.0 - split)]
@@ -532,7 +525,7 @@ def draw_scene_settings(rng: np.random.Generator, base: SensorModel = SensorMode
             row[i] = 1.0 - strength
             others = [j for j in range(3) if j != i]
             row[others[0]], row[others[1]] = leak
-            rows.append(tuple(round(v, 6) for v in row))
+            rows.append((round(row[0], 6), round(row[1], 6), round(row[2], 6)))
         crosstalk = tuple(rows)
     vignetting = str(rng.choice(VIGNETTING_CHOICES))
     k = (float(rng.uniform(*POLY_K2_RANGE)), float(rng.uniform(*POLY_K4_RANGE))) if vignetting == "poly" else (0.0, 0.0)

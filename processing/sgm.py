@@ -38,7 +38,7 @@ def _penalty(p1: float, p2: float, alpha: float, g0: float, g1: float) -> float:
 
 
 @nb.njit(cache=True, parallel=True, fastmath=True)
-def _rows_pass(cost, guide, p1, p2, alpha, out, dy, dx):  # type: ignore[no-untyped-def]
+def _rows_pass(cost, guide, p1, p2, alpha, out, dy, dx):
     """Paths with a vertical component: rows in order (dy = +1: top to bottom), predecessor (y - dy, x - dx)."""
     h, w, count = cost.shape
     prev = np.empty((w, count), np.float32)
@@ -77,7 +77,7 @@ def _rows_pass(cost, guide, p1, p2, alpha, out, dy, dx):  # type: ignore[no-unty
 
 
 @nb.njit(cache=True, parallel=True, fastmath=True)
-def _columns_pass(cost, guide, p1, p2, alpha, out, dx):  # type: ignore[no-untyped-def]
+def _columns_pass(cost, guide, p1, p2, alpha, out, dx):
     """Horizontal paths: every row on its own, x in order (dx = +1: left to right)."""
     h, w, count = cost.shape
     for y in nb.prange(h):
@@ -92,7 +92,7 @@ def _columns_pass(cost, guide, p1, p2, alpha, out, dx):  # type: ignore[no-untyp
         for i in range(1, w):
             x = x0 + dx * i
             pen = _penalty(p1, p2, alpha, guide[y, x], guide[y, x - dx])
-            m = _step(cost[y, x], prev, m, p1, pen, row)
+            m = _step(cost[y, x], prev, m, p1, pen, row)  # type: ignore[assignment,arg-type]  # numba unifies float32 and float
             o = out[y, x]
             for d in range(count):
                 o[d] += row[d]

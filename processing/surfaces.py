@@ -40,6 +40,7 @@ class SurfaceParams:
     jump_clip_px: float = 2.0  # tau
     boundary_samples: int = 10  # points per shared boundary at which two planes are compared
     sweeps: int = 10
+    weak_evidence: float = 0.1  # superpixels whose mean evidence is below this are decided after their neighbours
 
 
 @dataclass
@@ -104,7 +105,7 @@ def fit_planes(
     ys = np.repeat(np.arange(h, dtype=np.float64), w)
     d = disparity.ravel().astype(np.float64)
     wt = weights.ravel().astype(np.float64)
-    coef = np.zeros((count, 3))
+    coef: np.ndarray = np.zeros((count, 3))
     robust = wt
     for iteration in range(iterations):
         if iteration > 0:
@@ -222,7 +223,7 @@ def _graph(labels: np.ndarray, count: int, rings: int, samples: int) -> _Graph:
 
 
 @nb.njit(cache=True, parallel=True, fastmath=True)
-def _data_terms(disparity, evidence, width, planes, pix_ptr, pix_index, cand_ptr, cand_list, clip):  # type: ignore[no-untyped-def]
+def _data_terms(disparity, evidence, width, planes, pix_ptr, pix_index, cand_ptr, cand_list, clip):
     n = pix_ptr.shape[0] - 1
     out = np.zeros(cand_list.shape[0], np.float64)
     flat = disparity.ravel()
@@ -243,19 +244,35 @@ def _data_terms(disparity, evidence, width, planes, pix_ptr, pix_index, cand_ptr
 
 @nb.njit(cache=True)
 def _icm(
-    planes, cand_ptr, cand_list, data, nb_ptr, nb_other, nb_pair, weight, sample_ptr, sample_xy, jump_clip, sweeps
-):  # type: ignore[no-untyped-def]
+    planes,
+    cand_ptr,
+    cand_list,
+    data,
+    nb_ptr,
+    nb_other,
+    nb_pair,
+    weight,
+    sample_ptr,
+    sample_xy,
+    jump_clip,
+    sweeps,
+    order,
+    known,
+):
     n = cand_ptr.shape[0] - 1
     label = np.arange(n)
     for _ in range(sweeps):
         changed = 0
-        for s in range(n):
+        for t in range(n):
+            s = order[t]
             best = label[s]
             best_value = np.inf
             for k in range(cand_ptr[s], cand_ptr[s + 1]):
                 p = cand_list[k]
                 value = data[k]
                 for j in range(nb_ptr[s], nb_ptr[s + 1]):
+                    if not known[nb_other[j]]:
+                        continue  # a weak neighbour not yet visited has no say
                     q = label[nb_other[j]]
                     if q == p:
                         continue
@@ -276,6 +293,7 @@ def _icm(
                 if value < best_value:
                     best_value = value
                     best = p
+            known[s] = True
             if best != label[s]:
                 label[s] = best
                 changed += 1
@@ -324,6 +342,10 @@ def build_surfaces(
         graph.cand_list,
         float(params.data_clip_px),
     )
+    # visited strongest evidence first; a weak superpixel's own plane does not speak to its neighbours before it
+    # has been visited once (a texture-less patch of several superpixels would otherwise hold its garbage planes)
+    mean_evidence = np.bincount(labels.ravel(), evidence.ravel().astype(np.float64), count) / np.maximum(areas, 1)
+    order = np.argsort(-mean_evidence, kind="stable")
     src = np.repeat(np.arange(count), np.diff(graph.nb_ptr))
     similarity = np.exp(-np.sum((colours[src] - colours[graph.nb_other]) ** 2, axis=1) / params.colour_sigma**2)
     weight = params.smoothness * graph.lengths[graph.nb_pair] * similarity
@@ -340,5 +362,7 @@ def build_surfaces(
         graph.sample_xy,
         float(params.jump_clip_px),
         int(params.sweeps),
+        order,
+        mean_evidence >= params.weak_evidence,
     )
     return Surfaces(labels, fitted[chosen], fitted, colours, areas, graph.pairs, graph.lengths)

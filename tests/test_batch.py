@@ -149,6 +149,8 @@ def test_discovery_skips_hidden_and_foreign_files(tmp_path):
 
 def test_cli_workers_and_record(tmp_path):
     pytest.importorskip("rerun")
+    from test_recording import read_columns
+
     folder = tmp_path / "in"
     folder.mkdir()
     make_png(folder / "a.png", 32, 40)
@@ -159,15 +161,59 @@ def test_cli_workers_and_record(tmp_path):
     )
     assert result.exit_code == 0, result.output
     assert "2 done" in result.output
-    for name in ("a", "b"):
-        assert (tmp_path / "out" / name / "recording.rrd").stat().st_size > 0
-        assert "recording.rrd" in json.loads((tmp_path / "out" / name / RESULT_NAME).read_text())["outputs"]
     assert merged.stat().st_size > 0
-    # a rerun skips both and still merges their recordings
-    merged.unlink()
+    # a rerun skips both and keeps their shots in the recording it writes again
     again = CliRunner().invoke(app, ["process", str(folder), "--out", str(tmp_path / "out"), "--record", str(merged)])
     assert again.exit_code == 0 and "2 skipped" in again.output
-    assert merged.exists()
+    assert sorted(set(read_columns(merged)["/shot/input"]["shot"])) == [0, 1]
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*.rrd")) == [Path("all.rrd")]
+
+
+def test_record_stores_each_recording_once(tmp_path):
+    """`--record` keeps one copy of every shot's recording (the merged file), not one per result folder as well,
+    and the merged file still holds every entity of every shot, as recorded on its own."""
+    pytest.importorskip("rerun")
+    from test_recording import read_columns, rrd_verify
+
+    folder = tmp_path / "in"
+    folder.mkdir()
+    for name in ("a", "b"):
+        make_png(folder / f"{name}.png", 32, 40)
+    alone: dict[str, Path] = {}
+    for name in ("a", "b"):  # each photograph recorded on its own, elsewhere: the reference
+        alone[name] = tmp_path / "alone" / f"{name}.rrd"
+        done = CliRunner().invoke(
+            app,
+            [
+                "process",
+                str(folder / f"{name}.png"),
+                "--out",
+                str(tmp_path / f"alone-{name}"),
+                "--record",
+                str(alone[name]),
+            ],
+        )
+        assert done.exit_code == 0, done.output
+    out, merged = tmp_path / "out", tmp_path / "rec" / "all.rrd"
+    result = CliRunner().invoke(
+        app, ["process", str(folder), "--out", str(out), "--workers", "2", "--record", str(merged), "-q"]
+    )
+    assert result.exit_code == 0, result.output
+    assert rrd_verify(merged).returncode == 0
+
+    on_disk = sorted(out.rglob("*.rrd")) + sorted(merged.parent.rglob("*.rrd"))
+    assert on_disk == [merged], on_disk  # no per-folder copies, no parts left behind
+    assert not list(out.glob(".mca-recording-parts-*"))
+    for name in ("a", "b"):
+        assert "recording.rrd" not in json.loads((out / name / RESULT_NAME).read_text())["outputs"]
+    single_bytes = sum(p.stat().st_size for p in alone.values())
+    assert merged.stat().st_size < 1.25 * single_bytes, (merged.stat().st_size, single_bytes)
+
+    columns = read_columns(merged)
+    for shot, name in enumerate(("a", "b")):
+        expected = {e for e, c in read_columns(alone[name]).items() if "shot" in c}
+        present = {e for e, c in columns.items() if shot in c.get("shot", [])}
+        assert expected and expected <= present, sorted(expected - present)
 
 
 class StageLog:

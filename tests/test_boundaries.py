@@ -56,3 +56,12 @@ def test_pixels_far_from_a_boundary_never_change():
     interior[33:127, 53:167] = False
     interior[47:113, 67:153] = True
     assert np.array_equal(snapped[interior], truth[interior])
+
+
+def test_a_region_is_never_snapped_away():
+    image, truth, models = card_scene(-1.0, 1.0)
+    labels = truth.copy()
+    labels[78:82, 100:104] = 3  # a 4 x 4 region inside the card, all of it within the band
+    models[3] = np.full(truth.shape, 5.0, np.float32)
+    snapped = snap_boundaries(image, APERTURE, labels, models, BoundaryParams())
+    assert set(np.unique(snapped)) == {1, 2, 3}

@@ -42,6 +42,8 @@ def test_depth_steps_between_objects_are_kept():
     result = estimate_dense(image, APERTURE, (-10.0, 10.0))
     for name, (x, y) in points.items():
         patch = result.disparity_px[y - 5 : y + 6, x - 5 : x + 6]
-        assert abs(float(np.median(patch)) - truth[name]) < 0.35, name
+        assert abs(float(np.median(patch)) - truth[name]) < 0.5, (
+            name
+        )  # one candidate step (0.5 px); the steps are 2 px and more
     assert result.confidence.shape == result.disparity_px.shape
     assert float(result.confidence.min()) >= 0.0 and float(result.confidence.max()) <= 1.0

@@ -228,6 +228,7 @@ def test_mca_evaluate_rgbd_prints_figures_consistent_with_its_json(tiny_tree: Pa
     (render,) = document["renders"]
     assert render["name"] == "Cones-s7" and render["status"]["bando"] == "not built"
     for method in ("ours", "ours-raw", "wta"):
+        assert method in render["metrics"], render["status"]
         figures = render["metrics"][method]
         printed = rows[("Cones-s7", method)]
         for cell, key in zip(printed, PixelMetrics.FIELDS):

@@ -13,6 +13,7 @@ import subprocess
 import cv2
 import numpy as np
 import pytest
+import tifffile
 import trimesh
 from sim_capture import make_capture
 from tools import gltf_validator, require
@@ -60,11 +61,12 @@ def test_ply_and_glb_align_in_trimesh(capture) -> None:
     directions = sample / np.linalg.norm(sample, axis=1, keepdims=True)
     distance = np.linalg.norm(sample, axis=1)
     hit_distances = _ray_triangle_distances(directions, np.asarray(quads.triangles))  # (rays, triangles)
-    # each point lies on one of the quads the ray through it meets: same surface, same units, same axes
-    found = (np.abs(hit_distances - distance[:, None]) < 1e-4 * distance[:, None]).any(axis=1)
-    assert found.mean() > 0.99, f"{(~found).sum()} of {len(sample)} PLY points on no GLB quad"
+    # each point lies on (within the relief of its region, the dense depth about the region's plane) one of the
+    # quads the ray through it meets: same surface, same units, same axes
+    found = (np.abs(hit_distances - distance[:, None]) < 1e-2 * distance[:, None]).any(axis=1)
+    assert found.mean() > 0.95, f"{(~found).sum()} of {len(sample)} PLY points on no GLB quad"
     # the two files' extents agree too (metres, about a metre away)
-    assert 0.9 < -points[:, 2].min() < 2.0 and quads.bounds[0][2] == pytest.approx(points[:, 2].min(), abs=0.01)
+    assert 0.9 < -points[:, 2].min() < 2.0 and quads.bounds[0][2] == pytest.approx(points[:, 2].min(), abs=0.05)
 
 
 def test_glb_camera_and_result_json_intrinsics_are_the_photographs(capture, document) -> None:
@@ -93,7 +95,13 @@ def test_glb_camera_and_result_json_intrinsics_are_the_photographs(capture, docu
     slanted = {r["id"] for r in document["regions"] if r["slant"]}
     region = labels[v, u]
     flat = ~np.isin(region, list(slanted))
-    assert np.allclose(points[flat, 2], [distance[i] for i in region[flat]], rtol=1e-4)
+    # within the relief of a fronto-parallel region about its distance (the dense depth varies inside a region)
+    relief = np.abs(points[flat, 2] / np.array([distance[i] for i in region[flat]]) - 1)
+    assert np.median(relief) < 2e-3 and np.mean(relief < 1e-2) > 0.95
+    # and exactly the depth map's value at the pixel it projects to
+    depth = tifffile.imread(capture.out_dir / "depth.tiff")
+    if depth.shape == labels.shape:
+        assert np.allclose(points[:, 2], depth[v, u], rtol=1e-4)
 
 
 def test_the_recording_holds_scene_plys_points(capture) -> None:

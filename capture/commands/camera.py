@@ -11,17 +11,49 @@ camera_app = typer.Typer(
     help="Tethered camera: list, info, config, doctor, and the simulated EOS 70D.", no_args_is_help=True
 )
 
-CAMERA_OPTION = typer.Option("auto", "--camera", "-c", help="auto, sim, sim:SCENARIO, usb:BUS:ADDR or ptpip:HOST:PORT")
+CAMERA_OPTION = typer.Option(
+    None, "--camera", "-c", help="auto, sim, sim:SCENARIO, usb:BUS:ADDR or ptpip:HOST:PORT (default: config, auto)"
+)
+JSON_OPTION = typer.Option(False, "--json", help="print the result as JSON")
+LOGFILE_OPTION = typer.Option(
+    None, "--debug-logfile", metavar="FILE", help="append every PTP transaction and event to FILE"
+)
 
 
-def _open(spec: str):
+def _echo_json(document: Any) -> None:
+    import json
+
+    from mca.capture.outputs import json_safe
+
+    typer.echo(json.dumps(json_safe(document), indent=2))
+
+
+def _open(spec: str | None, debug_logfile: Path | None = None, ctx: typer.Context | None = None):
+    """Open the camera `spec` names (None: the config file's `camera`, else auto), logging PTP to a file if asked."""
+    from mca.capture.config import ConfigError, fill_from_config
     from mca.capture.tether import camera_factory
     from mca.devices.ptp.camera import PropertyNotReported, PtpError
     from mca.devices.ptp.codec import ProtocolError
     from mca.devices.ptp.transport import TransportError
 
     try:
-        return camera_factory(spec)()
+        spec = str(fill_from_config(camera=spec)["camera"])
+    except ConfigError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    traffic = None
+    if debug_logfile is not None:
+        from mca.devices.ptp.traffic_log import TrafficLogFile
+
+        try:
+            traffic = TrafficLogFile(str(debug_logfile), header=f"mca camera --camera {spec}")
+        except OSError as exc:
+            typer.echo(f"error: --debug-logfile {debug_logfile}: {exc.strerror or exc}", err=True)
+            raise typer.Exit(2) from exc
+        if ctx is not None:
+            ctx.call_on_close(traffic.close)  # when the command ends, however it ends
+    try:
+        return camera_factory(spec, traffic_log=traffic.write if traffic is not None else None)()
     except ValueError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
@@ -31,7 +63,9 @@ def _open(spec: str):
 
 
 @camera_app.command("list")
-def list_cameras(sim: bool = typer.Option(False, "--sim", help="also list the simulated EOS 70D")) -> None:
+def list_cameras(
+    sim: bool = typer.Option(False, "--sim", help="also list the simulated EOS 70D"), as_json: bool = JSON_OPTION
+) -> None:
     """List PTP cameras on USB (Canon first)."""
     from mca.devices.ptp.transport import TransportError
     from mca.devices.ptp.transport_usb import find_cameras
@@ -48,28 +82,59 @@ def list_cameras(sim: bool = typer.Option(False, "--sim", help="also list the si
             dict(port="sim", manufacturer=c.manufacturer, product=c.product, serial_number=c.serial_number)
             for c in find_cameras(make_sim_rig().backend)
         ]
-    if not found:
+    rows = [
+        c
+        if isinstance(c, dict)
+        else dict(port=c.port, manufacturer=c.manufacturer, product=c.product, serial_number=c.serial_number)
+        for c in found
+    ]
+    if as_json:
+        _echo_json({"cameras": rows})
+        return
+    if not rows:
         typer.echo("no PTP camera found (switch it on and connect it; `--camera sim` uses the simulated one)")
         return
-    for c in found:
-        d = (
-            c
-            if isinstance(c, dict)
-            else dict(port=c.port, manufacturer=c.manufacturer, product=c.product, serial_number=c.serial_number)
-        )
+    for d in rows:
         typer.echo(f"{d['port']}\t{d['manufacturer']} {d['product']}\tserial {d['serial_number']}")
 
 
 @camera_app.command("info")
-def info(camera: str = CAMERA_OPTION) -> None:
+def info(
+    ctx: typer.Context,
+    camera: str | None = CAMERA_OPTION,
+    as_json: bool = JSON_OPTION,
+    debug_logfile: Path | None = LOGFILE_OPTION,
+) -> None:
     """Model, firmware, serial number, storages and capture method."""
     from mca.devices.ptp.camera import PtpError
     from mca.devices.ptp.codec import ProtocolError
     from mca.devices.ptp.transport import TransportError
 
-    cam = _open(camera)
+    cam = _open(camera, debug_logfile, ctx)
     try:
         i = cam.info
+        if as_json:
+            _echo_json(
+                {
+                    "camera": cam.name,
+                    "manufacturer": i.manufacturer,
+                    "model": i.model,
+                    "firmware": i.device_version,
+                    "serial_number": i.serial_number,
+                    "capture": "Canon EOS remote release" if cam.is_eos else "PTP InitiateCapture",
+                    "storages": [
+                        {
+                            "id": f"0x{sid:08X}",
+                            "description": s.description,
+                            "volume_label": s.volume_label,
+                            "free_bytes": s.free_space_bytes,
+                            "capacity_bytes": s.max_capacity_bytes,
+                        }
+                        for sid, s in cam.storages().items()
+                    ],
+                }
+            )
+            return
         typer.echo(f"camera:       {cam.name}")
         typer.echo(f"model:        {i.manufacturer} {i.model}")
         typer.echo(f"firmware:     {i.device_version}")
@@ -89,10 +154,13 @@ def info(camera: str = CAMERA_OPTION) -> None:
 
 @camera_app.command("config")
 def config(
+    ctx: typer.Context,
     action: str | None = typer.Argument(None, help="get or set; omit to list every property"),
     name: str | None = typer.Argument(None, help="iso, shutterspeed, aperture, capturetarget, imageformat"),
     value: str | None = typer.Argument(None, help="the new value (for set)"),
-    camera: str = CAMERA_OPTION,
+    camera: str | None = CAMERA_OPTION,
+    as_json: bool = JSON_OPTION,
+    debug_logfile: Path | None = LOGFILE_OPTION,
 ) -> None:
     """Show or change camera properties by human name."""
     from mca.devices.ptp.camera import PropertyNotReported, PtpError
@@ -103,7 +171,7 @@ def config(
     if action not in (None, "get", "set") or (action and not name) or (action == "set" and value is None):
         typer.echo("usage: mca camera config [get NAME | set NAME VALUE]", err=True)
         raise typer.Exit(2)
-    cam = _open(camera)
+    cam = _open(camera, debug_logfile, ctx)
     try:
         if action == "set":
             try:
@@ -111,9 +179,13 @@ def config(
             except (UnknownPropertyName, PropertyNotReported, ValueError, PtpError) as exc:
                 typer.echo(f"error: {exc}", err=True)
                 raise typer.Exit(2) from exc
-            typer.echo(f"{pv.name} = {pv.value}")
+            if as_json:
+                _echo_json({pv.name: {"value": pv.value, "allowed": list(pv.allowed)}})
+            else:
+                typer.echo(f"{pv.name} = {pv.value}")
             return
         names = [name] if name else list(PROPERTIES)
+        listed: dict[str, Any] = {}
         for n in names:
             try:
                 pv = cam.get_property(n)
@@ -122,9 +194,14 @@ def config(
                     typer.echo(f"error: {exc}", err=True)
                     raise typer.Exit(2) from exc
                 continue
+            listed[pv.name] = {"value": pv.value, "allowed": list(pv.allowed)}
+            if as_json:
+                continue
             typer.echo(f"{pv.name} = {pv.value}")
             if pv.allowed:
                 typer.echo(f"  allowed: {', '.join(pv.allowed)}")
+        if as_json:
+            _echo_json(listed)
     except (TransportError, ProtocolError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(1) from exc
@@ -134,7 +211,8 @@ def config(
 
 @camera_app.command("doctor")
 def doctor(
-    camera: str = CAMERA_OPTION,
+    ctx: typer.Context,
+    camera: str | None = CAMERA_OPTION,
     report: Path | None = typer.Option(
         None, "--report", help="where to write the report (default: ./mca-doctor-SERIAL-TIME.txt)"
     ),
@@ -149,7 +227,7 @@ def doctor(
     from mca.devices.ptp.codec import ProtocolError
     from mca.devices.ptp.transport import TransportError
 
-    cam = _open(camera)
+    cam = _open(camera, ctx=ctx)
     try:
         usb = getattr(cam.transport, "info", None)
         ids = (usb.vendor_id, usb.product_id) if usb is not None else None

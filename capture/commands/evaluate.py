@@ -39,8 +39,8 @@ def register(app: typer.Typer) -> None:
         bando: str = typer.Option(
             None, "--bando", help="--rgbd: Bando et al. 2008's built program (default: $MCA_BANDO_BIN)."
         ),
-        as_json: bool = typer.Option(False, "--json", help="--rgbd: print the figures as JSON."),
-        json_file: str = typer.Option(None, "--json-file", help="--rgbd: also write the JSON figures to this file."),
+        as_json: bool = typer.Option(False, "--json", help="Print the figures as JSON (Table 2 or --rgbd)."),
+        json_file: str = typer.Option(None, "--json-file", help="Also write the JSON figures to this file."),
         keep_outputs: str = typer.Option(
             None, "--keep-outputs", help="--rgbd: keep mca process's output folders here."
         ),
@@ -56,6 +56,7 @@ def register(app: typer.Typer) -> None:
         if rgbd is not None:
             _evaluate_rgbd(rgbd, peers, bando, as_json, keep_outputs, only, json_file)
             return
+        import json
         import time
 
         from mca.capture.profiles import load_profile
@@ -108,11 +109,63 @@ def register(app: typer.Typer) -> None:
                 peer_maps["wta"] = colour_line_wta(aligned, optics.aperture, range_proc) * 2.0
             evaluations.append(evaluate_scene(truth, truth_labels, result, optics.mca, peer_maps, seconds))
             typer.echo(f"{name}: {len(result.regions)} regions in {seconds:.2f} s", err=True)
+        if as_json or json_file is not None:
+            document = table2_document(evaluations, methods, camera.name, optics, scale, seed)
+            if json_file is not None:
+                from mca.capture.outputs import write_json
+
+                write_json(json_file, document)
+            if as_json:
+                typer.echo(json.dumps(document, indent=2))
+                return
         typer.echo(
             f"profile {camera.name}, render {optics.width_px}x{optics.height_px} (scale {scale}), "
             f"processing {optics.width_px // 2}x{optics.height_px // 2}; ΔD in mm, + = farther than focus"
         )
         typer.echo(format_table(evaluations, methods))
+
+
+def table2_document(evaluations, methods: list[str], profile_name: str, optics, scale: float, seed: int) -> dict:
+    """`mca evaluate --json`: Table 2 as data: per scene and object the true and estimated inter-object depth
+    ΔD (mm) and the errors of every method, region counts, the order check, and the summary over scenes."""
+    import dataclasses
+
+    from mca.capture.outputs import json_safe
+    from mca.processing.evaluate import summarise
+
+    scenes = []
+    for e in evaluations:
+        objects = [
+            {
+                "label": r.label,
+                "name": r.name,
+                "true_mm": r.true_mm,
+                "estimates_mm": dict(r.estimates_mm),
+                "abs_error_mm": {m: r.abs_error_mm(m) for m in methods if m in r.estimates_mm},
+                "rel_error": {m: r.rel_error(m) for m in methods if m in r.estimates_mm},
+            }
+            for r in e.rows
+        ]
+        scenes.append(
+            {
+                "scene": e.scene,
+                "objects": objects,
+                "region_count": e.region_count,
+                "true_region_count": e.true_region_count,
+                "order_correct": e.order_correct,
+                "seconds": e.seconds,
+                "notes": list(e.notes),
+            }
+        )
+    return json_safe(
+        {
+            "profile": profile_name,
+            "render": {"width_px": optics.width_px, "height_px": optics.height_px, "scale": scale, "seed": seed},
+            "methods": methods,
+            "scenes": scenes,
+            "summary": dataclasses.asdict(summarise(evaluations, methods)),
+        }
+    )
 
 
 def _cached_paper_scene(folder: Path, name: str, camera, optics, scale: float, seed: int):

@@ -39,7 +39,13 @@ def report_document(report) -> dict:
     ]
     totals = {status: report.count(status) for status in ("done", "skipped", "failed")}
     return json_safe(
-        {"files": files, "totals": totals, "recording": report.recording, "interrupted": report.interrupted}
+        {
+            "files": files,
+            "totals": totals,
+            "recording": report.recording,
+            "recording_error": report.recording_error,
+            "interrupted": report.interrupted,
+        }
     )
 
 
@@ -227,6 +233,8 @@ def register(app: typer.Typer) -> None:
                 typer.echo(json.dumps(report_document(report), indent=2))
             else:
                 print_summary(report)
+            if report.recording_error:
+                typer.echo(f"error: {report.recording_error}", err=True)
             if live is not None and not report.interrupted:
                 import time
 
@@ -239,5 +247,5 @@ def register(app: typer.Typer) -> None:
         finally:
             if live is not None:
                 live.close()
-        if report.failed:
+        if report.failed or report.recording_error:
             raise typer.Exit(1)

@@ -202,7 +202,14 @@ def _single(
         leak = crosstalk / 2.0
         matrix = None
         if crosstalk > 0:
-            matrix = tuple(tuple(1.0 - crosstalk if i == j else leak for j in range(3)) for i in range(3))
+            matrix = tuple(
+                (
+                    1.0 - crosstalk if i == 0 else leak,
+                    1.0 - crosstalk if i == 1 else leak,
+                    1.0 - crosstalk if i == 2 else leak,
+                )
+                for i in range(3)
+            )
         realism = Realism(sensor=SensorModel(iso=iso), crosstalk=matrix, vignetting=vignetting)
         source = read_rgbd_source(image, disparity, disparity_scale, name=name)
         if full_size:
@@ -261,6 +268,7 @@ def _tree(
     if camera_profile.lens is None:
         typer.echo(f"error: profile '{camera_profile.name}' has no lens; use one with optics (paper-70d)", err=True)
         raise typer.Exit(2) from None
+    jobs: list[tuple[str, tuple[str, ...] | None, tuple[int, ...], str, int | None, bool]]
     if dev_set:
         jobs = [
             ("tuning", DEV_TUNING_SCENES, DEV_SEEDS, "tiff", DEV_WIDTH_PX, False),

@@ -688,13 +688,18 @@ class Camera:
         entries = image_format_of(current.raw) if current else None
         return len(entries) if entries else 1
 
-    def trigger(self) -> CaptureTicket:
+    def trigger(self, before_release: Callable[[CaptureTicket], None] | None = None) -> CaptureTicket:
         """Release the shutter once. Never repeated: a failure before the release raises `CameraNotReady`, a
-        refusal `ReleaseRefused` (no picture), a link failure while the command was out `ReleaseUncertain`."""
+        refusal `ReleaseRefused` (no picture), a link failure while the command was out `ReleaseUncertain`.
+
+        `before_release(ticket)` is called once the ticket (the card before the release) is known and just
+        before the shutter command goes out: the host can note the release durably first."""
         if not self.is_eos:
             if not self.info.supports(Op.INITIATE_CAPTURE):
                 raise CaptureError(f"{self.name} supports neither EOS remote release nor InitiateCapture")
             ticket = CaptureTicket(self.serial_number, None, 1, False)
+            if before_release is not None:
+                before_release(ticket)
             resp = self._release_once(Op.INITIATE_CAPTURE, (0, 0), ticket)
             if resp.code != Resp.OK:
                 raise ReleaseRefused(
@@ -718,6 +723,8 @@ class Camera:
             self.files_per_shot(),
             in_ram,
         )
+        if before_release is not None:
+            before_release(ticket)
         if self.info.supports(Op.EOS_REMOTE_RELEASE_ON):
             self._half_press()
             self._check_focus()

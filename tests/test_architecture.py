@@ -1,0 +1,230 @@
+"""The import arrows of docs/architecture.md, checked by parsing every module's imports (nothing is imported).
+
+capture -> processing and capture -> devices are the only arrows between the rooms; processing
+is pure (no I/O library); the PTP and GRBL codecs are pure; the real device stacks never import
+their simulated twins. A violation names the file, the line and the import.
+"""
+
+from __future__ import annotations
+
+import ast
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+ROOMS = {"capture": "mca.capture", "processing": "mca.processing", "devices": "mca.devices"}
+
+# Libraries that touch files, devices, the network or the terminal: none of them in processing/.
+IO_LIBRARIES = frozenset(
+    {"rerun", "rerun_cli", "usb", "libusb_package", "serial", "typer", "rich", "rawpy", "tifffile", "socket", "sqlite3"}
+)
+# The pure protocol codecs: bytes in, messages out; no transport library.
+CODEC_MODULES = (
+    "devices/ptp/codec.py",
+    "devices/ptp/codes.py",
+    "devices/ptp/datasets.py",
+    "devices/ptp/events.py",
+    "devices/ptp/liveview.py",
+    "devices/ptp/policy.py",
+    "devices/ptp/properties.py",
+    "devices/rail/grbl_protocol.py",
+)
+CODEC_FORBIDDEN = frozenset({"usb", "libusb_package", "serial", "socket", "select", "threading", "subprocess"})
+
+
+@dataclass(frozen=True)
+class Import:
+    path: str  # relative to the repository
+    line: int
+    module: str  # absolute dotted name
+
+    def __str__(self) -> str:
+        return f"{self.path}:{self.line}: imports {self.module}"
+
+
+@dataclass(frozen=True)
+class Module:
+    path: str  # relative to the repository, e.g. "capture/commands/process.py"
+    source: str
+
+    @property
+    def package(self) -> str:
+        """`capture/commands/x.py` -> `mca.capture.commands` (where a relative import starts from)."""
+        parts = Path(self.path).parts
+        return ".".join([ROOMS[parts[0]], *parts[1:-1]])
+
+
+def room_modules(folder: str) -> list[Module]:
+    """Every module below `folder` (a room or a part of one), as it is on disk."""
+    files = sorted((ROOT / folder).rglob("*.py"))
+    return [Module(str(p.relative_to(ROOT)), p.read_text(encoding="utf-8")) for p in files]
+
+
+def module_imports(module: Module) -> list[Import]:
+    """Every module imported, at any depth (inside functions and `if TYPE_CHECKING:` too), as absolute names."""
+    tree = ast.parse(module.source, filename=module.path)
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found += [Import(module.path, node.lineno, alias.name) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = module.package.split(".")
+                base = base[: len(base) - (node.level - 1)]
+                name = ".".join([*base, node.module] if node.module else base)
+            else:
+                name = node.module or ""
+            found.append(Import(module.path, node.lineno, name))
+            # `from mca import capture`, `from .. import ptp`: the names may be modules themselves
+            found += [Import(module.path, node.lineno, f"{name}.{alias.name}") for alias in node.names]
+    return found
+
+
+def top(module: str) -> str:
+    return module.split(".")[0]
+
+
+def is_under(module: str, package: str) -> bool:
+    return module == package or module.startswith(package + ".")
+
+
+def violations(modules: list[Module], forbidden_packages: tuple[str, ...], forbidden_top: frozenset[str]) -> list[str]:
+    bad: dict[tuple[str, int], Import] = {}
+    for module in modules:
+        for imp in module_imports(module):
+            if any(is_under(imp.module, p) for p in forbidden_packages) or top(imp.module) in forbidden_top:
+                bad.setdefault((imp.path, imp.line), imp)  # one line, one report: the module, not its names
+    return [str(imp) for _, imp in sorted(bad.items())]
+
+
+# The arrows, as functions of the modules they look at (the planted-import test hands them one more).
+
+
+def processing_violations(modules: list[Module]) -> list[str]:
+    return violations(modules, ("mca.capture", "mca.devices"), IO_LIBRARIES)
+
+
+def devices_violations(modules: list[Module]) -> list[str]:
+    return violations(modules, ("mca.capture", "mca.processing"), frozenset({"rerun", "typer", "rich", "rawpy"}))
+
+
+def codec_violations(modules: list[Module]) -> list[str]:
+    return violations(modules, ("mca.capture", "mca.processing"), CODEC_FORBIDDEN)
+
+
+def twin_violations(modules: list[Module]) -> list[str]:
+    """The real stacks (devices/ptp, devices/rail) must not import the simulated twins; `open_rail("sim")` in
+    devices/rail/__init__.py starts the twin on request, as pyserial's `serial_for_url("loop://")` does."""
+    bad = violations(modules, ("mca.devices.sim_eos70d", "mca.devices.sim_grbl"), frozenset())
+    return [v for v in bad if not v.startswith("devices/rail/__init__.py")]
+
+
+# --- the parser itself ----------------------------------------------------------------------------------------------
+
+
+def test_the_parser_sees_every_kind_of_import() -> None:
+    source = (
+        "import os, usb.core\n"
+        "from mca.capture.raw import read_raw\n"
+        "from ..capture import tether\n"
+        "from . import colour\n"
+        "from mca import devices\n"
+        "def f():\n    import rerun as rr\n"
+        "if TYPE_CHECKING:\n    from mca.devices.ptp.camera import Camera\n"
+    )
+    found = {i.module for i in module_imports(Module("processing/pipeline.py", source))}
+    assert {
+        "os",
+        "usb.core",
+        "mca.capture.raw",
+        "mca.capture.tether",
+        "mca.processing.colour",
+        "mca.devices",
+        "rerun",
+        "mca.devices.ptp.camera",
+    } <= found
+
+
+def test_every_room_has_modules() -> None:
+    """The checks below would pass vacuously on an empty or misplaced tree."""
+    for room in ROOMS:
+        assert len(room_modules(room)) >= 5, room
+    for path in CODEC_MODULES:
+        assert (ROOT / path).is_file(), path
+
+
+# --- the arrows -----------------------------------------------------------------------------------------------------
+
+
+def test_processing_imports_neither_capture_nor_devices_nor_io_libraries() -> None:
+    bad = processing_violations(room_modules("processing"))
+    assert not bad, "processing/ must stay pure (docs/architecture.md):\n" + "\n".join(bad)
+
+
+def test_devices_imports_neither_capture_nor_processing() -> None:
+    bad = devices_violations(room_modules("devices"))
+    assert not bad, "devices/ must not import the application or the algorithms:\n" + "\n".join(bad)
+
+
+def test_codecs_do_no_io() -> None:
+    bad = codec_violations([m for m in room_modules("devices") if m.path in CODEC_MODULES])
+    assert not bad, "the PTP and GRBL codecs are bytes in, messages out (h11 style):\n" + "\n".join(bad)
+
+
+def test_real_device_stacks_do_not_import_their_twins() -> None:
+    bad = twin_violations(room_modules("devices/ptp") + room_modules("devices/rail"))
+    assert not bad, "the real stacks must not depend on the simulated ones:\n" + "\n".join(bad)
+
+
+def test_every_mca_import_names_a_module_of_a_room() -> None:
+    """`mca.<room>.<module>` imports resolve to a file (a moved module leaves no import pointing nowhere)."""
+    folder_of = {package: folder for folder, package in ROOMS.items()}
+    bad = []
+    for room in ROOMS:
+        for module in room_modules(room):
+            for imp in module_imports(module):
+                parts = imp.module.split(".")
+                if parts[0] != "mca" or len(parts) < 2 or parts[1] in ("__version__",):
+                    continue
+                folder = folder_of.get(".".join(parts[:2]))
+                if folder is None:
+                    continue  # `from mca import __version__`-like names of the package root
+                target = ROOT / folder / Path(*parts[2:])
+                parent = target.parent
+                # the last part may be a name inside a module (`from mca.capture.raw import read_raw`)
+                if not any(t.with_suffix(".py").is_file() or (t / "__init__.py").is_file() for t in (target, parent)):
+                    bad.append(f"{imp} (no such module)")
+    assert not bad, "\n".join(bad)
+
+
+# --- the checks fail on a planted bad import ------------------------------------------------------------------------
+
+PLANTS = [
+    ("processing/_planted.py", "from mca.capture.raw import read_raw", processing_violations, "processing"),
+    ("processing/_planted.py", "import rerun as rr", processing_violations, "processing"),
+    ("processing/sub/_planted.py", "from ...devices.ptp import camera", processing_violations, "processing"),
+    ("devices/_planted.py", "from mca.capture.tether import camera_factory", devices_violations, "devices"),
+    ("devices/ptp/_planted.py", "from mca.processing.optics import MCAOptics", devices_violations, "devices"),
+    ("devices/ptp/codec.py", "import usb.core", codec_violations, None),
+    (
+        "devices/ptp/_planted.py",
+        "from mca.devices.sim_eos70d.responder import SimEos70D",
+        twin_violations,
+        "devices/ptp",
+    ),
+]
+
+
+@pytest.mark.parametrize(("path", "line", "check", "folder"), PLANTS)
+def test_a_planted_bad_import_is_caught(
+    path: str, line: str, check: Callable[[list[Module]], list[str]], folder: str | None
+) -> None:
+    """The tree as it is passes; the same tree with one bad import (inside a function, line 4) fails, naming it."""
+    modules = room_modules(folder) if folder else [m for m in room_modules("devices") if m.path in CODEC_MODULES]
+    assert check(modules) == []
+    planted = Module(path, f'"""planted."""\n\n\ndef f() -> None:\n    {line}\n')
+    caught = check([*[m for m in modules if m.path != path], planted])
+    assert len(caught) >= 1 and all(c.startswith(f"{path}:5: imports ") for c in caught), caught
