@@ -1,19 +1,28 @@
-"""Benchmark: one simulated 20 MP CR2 through `process_file`, decode to written outputs, beside one StereoSGBM pass.
+"""Benchmark (issue 16): 20 MP captures through `mca process`, stage by stage, beside StereoSGBM and LibRaw's unpack.
 
-A simulated EOS 70D capture (5472 x 3648, `mca simulate --scene paper-c --profile paper-70d`) is
-processed by `capture.pipeline_app.process_file` in a fresh process per run (so each run's peak
-RSS, `ru_maxrss`, is its own), without and with recording (`--record`), runs alternating. Printed:
-medians of the stage timings from result.json (read, the pipeline's stages, write), the wall time
-of `process_file`, its CPU time, the peak RSS, the output files' sizes, the wall time of the whole
-`mca process` command (interpreter start and imports included), and one StereoSGBM pass
-(`processing.peers.sgbm_disparity`, widest pair) on the same planes, with our total over it.
+Inputs, both 5472 x 3648 CR2s from the simulator:
 
-Issue 4's target: <= 2 s wall from decode to written outputs per 20 MP capture on the 2-core
-machine, peak memory <= 3 GB. On a shared machine the CPU seconds are the steadier figure.
+- `sim`: a paper scene (`mca simulate --scene paper-c`, rendered here in about 10 s);
+- `rgbd`: a real photograph with its depth, rendered at 20 MP through the CR2 writer
+  (`mca simulate --from-rgbd <middlebury>/Art/im.png .../disp.png --full-size --format cr2`, its
+  profile from the render's truth/). That render takes minutes, so it is kept in `--cache`.
 
-    .venv/bin/python benchmarks/bench_process.py [--runs 3] [--scene paper-c] [--profile paper-70d]
+For each input, every run (after one warm-up, which fills numba's cache) starts fresh processes for:
+`mca process` plain, with `--record`, and with `--quality preview` (wall time of the command,
+interpreter start and imports included, and its peak RSS); the stage timings from the result.json
+each run writes; one OpenCV StereoSGBM pass on the same Bayer planes with the pipeline's search
+range (`processing.peers.sgbm_disparity`); and LibRaw's unpack of the file (`rawpy.imread(...)
+.raw_image` copied). The ratios are taken run by run, so that a busy machine slows both sides of
+each ratio alike, and their medians printed.
 
-Prints figures only; nothing here asserts a time.
+Then the throughput of `mca process` over a folder of `--files` captures (copies of `sim`) with
+`--workers 1`, `--workers 2`, and `--workers 2` with every library's threads unlimited
+(`MCA_WORKER_THREADS=0`, as before the workers got their share), and the scaling efficiency
+t1 / (2 t2).
+
+    .venv/bin/python benchmarks/bench_process.py [--runs 5] [--quick] [--files 20] [--no-batch] [--no-rgbd]
+
+Prints figures only; nothing here asserts a time. On a shared machine the ratios are the figures to compare.
 """
 
 from __future__ import annotations
@@ -21,7 +30,8 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
-import resource
+import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -29,66 +39,79 @@ import tempfile
 import time
 from pathlib import Path
 
-STAGE_ORDER = ("read", "planes", "disparity", "sketch", "refine", "depth", "all_in_focus", "mpi", "pipeline", "write")
+STAGE_ORDER = (
+    "read",
+    "planes",
+    "disparity",
+    "surfaces",
+    "sketch",
+    "refine",
+    "boundaries",
+    "depth",
+    "all_in_focus",
+    "mpi",
+    "pipeline",
+    "write",
+)
+MCA = str(Path(sys.executable).with_name("mca"))
+REPO = Path(__file__).resolve().parents[1]
+MIDDLEBURY = REPO.parent / "shared" / "data" / "middlebury"
+
+# Runs a command and prints the peak RSS (KiB) of the largest process it started (workers included).
+WRAPPER = """
+import resource, subprocess, sys
+done = subprocess.run(sys.argv[1:], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+if done.returncode:
+    sys.stderr.write(done.stderr)
+print(done.returncode, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
+"""
 
 
-def _process_child(cr2: str, out: str, profile_name: str, record: bool, queue) -> None:
-    """One `process_file` in a fresh process: its timings, wall and CPU time, peak RSS and output sizes."""
-    from mca.capture.pipeline_app import RESULT_NAME, process_file
-    from mca.capture.profiles import load_profile
-
-    profile = load_profile(profile_name)
-    record_path = Path(out) / "recording.rrd" if record else None
-    cpu, wall = time.process_time(), time.perf_counter()
-    outcome = process_file(cr2, out, profile, force=True, record_path=record_path)
-    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
-    if outcome.status != "done":
-        queue.put({"error": outcome.reason})
-        return
-    document = json.loads((outcome.output_dir / RESULT_NAME).read_text())
-    sizes = {
-        p.relative_to(outcome.output_dir).as_posix(): p.stat().st_size
-        for p in sorted(outcome.output_dir.rglob("*"))
-        if p.is_file()
-    }
-    if record_path is not None and record_path.is_file():
-        sizes["(recording) " + record_path.name] = record_path.stat().st_size
-    queue.put(
-        {
-            "timings": document["timings_s"],
-            "wall": wall,
-            "cpu": cpu,
-            "sizes": sizes,
-            "peak_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-        }
+def run_mca(args: list[str], env: dict[str, str] | None = None) -> tuple[float, float]:
+    """Wall seconds and peak RSS (MiB) of one `mca ...` command in a fresh process."""
+    start = time.perf_counter()
+    done = subprocess.run(
+        [sys.executable, "-c", WRAPPER, MCA, *args],
+        capture_output=True,
+        text=True,
+        env={**os.environ, **(env or {})},
+        check=False,
     )
+    wall = time.perf_counter() - start
+    code, peak_kib = done.stdout.split()[-2:]
+    if int(code) != 0:
+        sys.exit(f"mca {' '.join(args)} failed ({code}):\n{done.stderr}")
+    return wall, int(peak_kib) / 1024.0
 
 
-def _sgbm_child(cr2: str, profile_name: str, runs: int, queue) -> None:
-    """StereoSGBM on the very planes `process_file` reads from the CR2, with the pipeline's search range."""
-    from mca.capture.pipeline_app import _optics_for, read_input
+def _peers_child(cr2: str, profile_name: str, queue) -> None:
+    """One LibRaw unpack and one StereoSGBM pass (on the planes `mca process` reads, its search range)."""
+    import rawpy
+
+    from mca.capture.api import optics_for, read_input
     from mca.capture.profiles import load_profile
     from mca.processing.peers import sgbm_disparity
     from mca.processing.pipeline import default_disparity_range_px
 
+    start = time.perf_counter()
+    with rawpy.imread(cr2) as raw:
+        raw.raw_image.copy()
+    libraw_s = time.perf_counter() - start
     profile = load_profile(profile_name)
     loaded = read_input(Path(cr2))
-    optics = _optics_for(profile, loaded)
+    optics = optics_for(profile, loaded)
     width, height = loaded.input_size_px
     low, high = default_disparity_range_px(profile.aperture, optics, (height, width))
     scale = loaded.pixel_scale  # the range is in input pixels, SGBM works on the planes
-    seconds = []
-    for _ in range(runs):
-        start = time.perf_counter()
-        sgbm_disparity(loaded.planes, profile.aperture, (low / scale, high / scale))
-        seconds.append(time.perf_counter() - start)
-    queue.put(seconds)
+    start = time.perf_counter()
+    sgbm_disparity(loaded.planes, profile.aperture, (low / scale, high / scale))
+    queue.put({"libraw": libraw_s, "sgbm": time.perf_counter() - start})
 
 
-def _in_child(target, *args):
+def peers(cr2: Path, profile: str) -> dict[str, float]:
     context = mp.get_context("spawn")
     queue = context.Queue()
-    process = context.Process(target=target, args=args + (queue,))
+    process = context.Process(target=_peers_child, args=(str(cr2), profile, queue))
     process.start()
     result = queue.get()
     process.join()
@@ -96,91 +119,158 @@ def _in_child(target, *args):
 
 
 def _median(values) -> float:
-    return statistics.median(list(values))
+    values = [v for v in values if v is not None]
+    return statistics.median(values) if values else float("nan")
+
+
+def make_sim(folder: Path, scene: str, scale: float = 1.0) -> tuple[Path, str]:
+    from mca.capture.profiles import load_profile
+    from mca.capture.simulated_shots import render_scene, write_capture
+
+    profile = load_profile("paper-70d")
+    capture = render_scene(scene, profile, size="full" if scale == 1.0 else scale, seed=0)
+    return Path(write_capture(capture, profile, folder)["cr2"]), "paper-70d"
+
+
+def make_rgbd(cache: Path, scene: str) -> tuple[Path, str]:
+    """The 20 MP render of a Middlebury scene, from the cache or rendered into it (minutes)."""
+    folder = cache / f"{scene}-20mp"
+    cr2, profile = folder / f"{scene}.CR2", folder / "truth" / f"{scene}.profile.toml"
+    if cr2.is_file() and profile.is_file():
+        return cr2, str(profile)
+    source = MIDDLEBURY / scene
+    print(f"rendering {scene} at 20 MP into {folder} (minutes; kept for the next run)", flush=True)
+    subprocess.run(
+        [MCA, "simulate", "--from-rgbd", str(source / "im.png"), str(source / "disp.png")]
+        + ["--full-size", "--format", "cr2", "--out", str(folder)],
+        check=True,
+        stdout=subprocess.DEVNULL,
+    )
+    return cr2, str(profile)
+
+
+def bench_input(label: str, cr2: Path, profile: str, runs: int, work: Path) -> dict:
+    out = work / f"out-{label}"
+    common = [str(cr2), "--out", str(out), "--profile", profile, "--force", "-q"]
+    variants = {
+        "plain": common,
+        "--record": common + ["--record", str(work / f"{label}.rrd")],
+        "preview": common + ["--quality", "preview"],
+    }
+    if "--quality" not in subprocess.run([MCA, "process", "--help"], capture_output=True, text=True).stdout:
+        del variants["preview"]  # an mca before --quality (a before/after comparison)
+    print(f"{label}: {cr2.name}, {cr2.stat().st_size / 1e6:.1f} MB; warm-up run", flush=True)
+    run_mca(["process", *common])
+    rows: list[dict] = []
+    for run in range(runs):
+        row: dict = {}
+        for name, args in variants.items():
+            wall, peak = run_mca(["process", *args])
+            document = json.loads((out / cr2.stem / "result.json").read_text())
+            row[name] = {"wall": wall, "peak": peak, "timings": document["timings_s"]}
+        row.update(peers(cr2, profile))
+        rows.append(row)
+        walls = ", ".join(f"{name} {row[name]['wall']:.2f} s" for name in variants)
+        print(f"  run {run + 1}/{runs}: {walls}, SGBM {row['sgbm']:.2f} s, LibRaw {row['libraw']:.2f} s", flush=True)
+    folder = out / cr2.stem
+    sizes = {p.relative_to(folder).as_posix(): p.stat().st_size for p in sorted(folder.rglob("*")) if p.is_file()}
+    return {"rows": rows, "sizes": sizes}
+
+
+def report_input(label: str, data: dict, runs: int) -> None:
+    rows = data["rows"]
+    names = [n for n in ("plain", "--record", "preview") if n in rows[0]]
+    print(f"\n== {label}: `mca process`, median of {runs} runs (seconds) ==")
+    print(f"  {'stage':<26}" + "".join(f"{n:>10}" for n in names))
+    keys = [s for s in STAGE_ORDER if any(s in r[n]["timings"] for r in rows for n in names)]
+    extra = sorted({k for r in rows for n in names for k in r[n]["timings"]} - set(keys) - {"total"})
+    for key in keys + [k for k in extra if not k.startswith("write ")] + [k for k in extra if k.startswith("write ")]:
+        cells = "".join(f"{_median(r[n]['timings'].get(key) for r in rows):10.3f}" for n in names)
+        print(f"  {key:<26}{cells}")
+    print(f"  {'mca process (wall)':<26}" + "".join(f"{_median(r[n]['wall'] for r in rows):10.3f}" for n in names))
+    print(f"  {'peak RSS (MiB)':<26}" + "".join(f"{_median(r[n]['peak'] for r in rows):10.0f}" for n in names))
+    print("  ('write <file>': seconds each file took on its writer thread; they overlap one another)")
+    sgbm, libraw = _median(r["sgbm"] for r in rows), _median(r["libraw"] for r in rows)
+    print(f"  one StereoSGBM pass {sgbm:.3f} s, LibRaw unpack {libraw:.3f} s (medians)")
+    for name in names:
+        over_sgbm = _median(r[name]["wall"] / r["sgbm"] for r in rows)
+        over_libraw = _median(r[name]["wall"] / r["libraw"] for r in rows)
+        pipeline = _median(r[name]["timings"].get("pipeline", float("nan")) / r["sgbm"] for r in rows)
+        print(
+            f"  {name:<9} mca process / SGBM {over_sgbm:5.2f}x  (pipeline alone {pipeline:4.2f}x),  "
+            f"/ LibRaw unpack {over_libraw:5.2f}x"
+        )
+    layers = sum(v for k, v in data["sizes"].items() if k.startswith("layers/"))
+    files = ", ".join(f"{k} {v:,}" for k, v in data["sizes"].items() if not k.startswith("layers/"))
+    print(f"  outputs (bytes): {files}, layers/ {layers:,}")
+
+
+def bench_batch(cr2: Path, files: int, work: Path) -> None:
+    """`mca process` over `files` copies of `cr2` with 1 and 2 workers (and 2 with unlimited threads)."""
+    folder = work / "batch-in"
+    folder.mkdir(exist_ok=True)
+    for index in range(files):
+        target = folder / f"shot_{index:03d}.CR2"
+        if not target.exists():
+            shutil.copyfile(cr2, target)
+    print(f"\n== throughput: `mca process` over {files} copies of {cr2.name} ({os.cpu_count()} cores) ==", flush=True)
+    configs = (
+        ("--workers 1", 1, {}),
+        ("--workers 2", 2, {}),
+        ("--workers 2, threads unlimited", 2, {"MCA_WORKER_THREADS": "0"}),
+    )
+    seconds: dict[str, float] = {}
+    for name, workers, env in configs:
+        out = work / "batch-out"
+        shutil.rmtree(out, ignore_errors=True)
+        wall, peak = run_mca(["process", str(folder), "--out", str(out), "--workers", str(workers), "-q"], env)
+        seconds[name] = wall
+        print(
+            f"  {name:<32} {wall:7.1f} s  {files / wall * 60:6.1f} files/min  peak {peak:.0f} MiB per process  "
+            f"(load {os.getloadavg()[0]:.1f})",
+            flush=True,
+        )
+    t1 = seconds["--workers 1"]
+    for name in ("--workers 2", "--workers 2, threads unlimited"):
+        print(f"  scaling efficiency t1 / (2 t2), {name}: {t1 / (2 * seconds[name]):.2f}")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--runs", type=int, default=3)
-    parser.add_argument("--scene", default="paper-c")
-    parser.add_argument("--profile", default="paper-70d")
+    parser.add_argument("--runs", type=int, default=5, help="timed runs per input (default 5)")
+    parser.add_argument("--quick", action="store_true", help="2 runs, a batch of 6 files")
+    parser.add_argument("--files", type=int, default=20, help="captures in the throughput batch")
+    parser.add_argument("--scene", default="paper-c", help="the simulated paper scene")
+    parser.add_argument("--rgbd-scene", default="Art", help="the Middlebury scene rendered at 20 MP")
+    parser.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "mca-bench", help="keeps the render")
+    parser.add_argument("--no-batch", action="store_true")
+    parser.add_argument(
+        "--batch-scale", type=float, default=1.0, help="size of the batch's captures (1 = 20 MP; 0.5 = 5 MP, quicker)"
+    )
+    parser.add_argument("--only-batch", action="store_true", help="just the throughput figures")
+    parser.add_argument("--no-rgbd", action="store_true")
     args = parser.parse_args()
+    runs, files = (2, min(6, args.files)) if args.quick else (args.runs, args.files)
 
-    from mca.capture.profiles import load_profile
-    from mca.capture.simulated_shots import render_scene, write_capture
-
+    print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}")
     with tempfile.TemporaryDirectory(prefix="bench_process_") as tmp:
+        work = Path(tmp)
         start = time.perf_counter()
-        capture = render_scene(args.scene, load_profile(args.profile), size="full", seed=0)
-        cr2 = str(write_capture(capture, load_profile(args.profile), Path(tmp) / "in")["cr2"])
-        print(
-            f"simulated {args.scene} ({args.profile}) in {time.perf_counter() - start:.1f} s: "
-            f"{Path(cr2).name}, {Path(cr2).stat().st_size / 1e6:.1f} MB"
-        )
-
-        runs: dict[bool, list[dict]] = {False: [], True: []}
-        cli_walls = []
-        for _ in range(args.runs):
-            for record in (False, True):
-                result = _in_child(_process_child, cr2, str(Path(tmp) / f"out-{int(record)}"), args.profile, record)
-                if "error" in result:
-                    sys.exit(f"process_file failed: {result['error']}")
-                runs[record].append(result)
-            start = time.perf_counter()
-            subprocess.run(
-                [
-                    str(Path(sys.executable).with_name("mca")),
-                    "process",
-                    cr2,
-                    "--out",
-                    str(Path(tmp) / "out-cli"),
-                    "--profile",
-                    args.profile,
-                    "--force",
-                    "-q",
-                ],
-                check=True,
-                stdout=subprocess.DEVNULL,
-            )
-            cli_walls.append(time.perf_counter() - start)
-        sgbm = _in_child(_sgbm_child, cr2, args.profile, args.runs)
-
-    print(f"\nprocess_file, decode to written outputs, median of {args.runs} runs (seconds):")
-    print(f"  {'stage':<14} {'plain':>8} {'--record':>9}")
-    stages = [s for s in STAGE_ORDER if s in runs[False][0]["timings"]]
-    stages += [s for s in runs[False][0]["timings"] if s not in stages and s != "total"]
-    for stage in stages:
-        plain = _median(r["timings"].get(stage, float("nan")) for r in runs[False])
-        recorded = _median(r["timings"].get(stage, float("nan")) for r in runs[True])
-        print(f"  {stage:<14} {plain:8.3f} {recorded:9.3f}")
-    plain_wall = _median(r["wall"] for r in runs[False])
-    record_wall = _median(r["wall"] for r in runs[True])
-    print(
-        f"  {'total (wall)':<14} {plain_wall:8.3f} {record_wall:9.3f}   runs: "
-        f"{[round(r['wall'], 2) for r in runs[False]]} / {[round(r['wall'], 2) for r in runs[True]]}"
-    )
-    print(
-        f"  {'total (CPU)':<14} {_median(r['cpu'] for r in runs[False]):8.3f} "
-        f"{_median(r['cpu'] for r in runs[True]):9.3f}   (2 cores: CPU can exceed wall)"
-    )
-    print(
-        f"  {'peak RSS MiB':<14} {_median(r['peak_mib'] for r in runs[False]):8.0f} "
-        f"{_median(r['peak_mib'] for r in runs[True]):9.0f}   (whole process, ru_maxrss)"
-    )
-    print(
-        f"mca process (the command, interpreter start and imports included): median {_median(cli_walls):.2f} s "
-        f"wall, runs {[round(w, 2) for w in cli_walls]}"
-    )
-    print("outputs (bytes):")
-    for name, size in runs[True][-1]["sizes"].items():
-        print(f"  {name:<26} {size:>12,}")
-    sgbm_s = _median(sgbm)
-    print(f"StereoSGBM (one pass, widest pair, same planes): median {sgbm_s:.3f} s, runs {[round(s, 3) for s in sgbm]}")
-    print(
-        f"ours / StereoSGBM: {plain_wall / sgbm_s:.2f}x (process_file wall), "
-        f"{_median(r['timings']['pipeline'] for r in runs[False]) / sgbm_s:.2f}x (pipeline alone), "
-        f"{record_wall / sgbm_s:.2f}x (with --record)"
-    )
+        sim, sim_profile = make_sim(work / "sim", args.scene)
+        print(f"simulated {args.scene} in {time.perf_counter() - start:.1f} s")
+        inputs = [] if args.only_batch else [(f"sim {args.scene}", sim, sim_profile)]
+        if not (args.no_rgbd or args.only_batch):
+            rgbd, rgbd_profile = make_rgbd(args.cache, args.rgbd_scene)
+            inputs.append((f"rgbd {args.rgbd_scene}", rgbd, rgbd_profile))
+        results = {label: bench_input(label.split()[0], cr2, prof, runs, work) for label, cr2, prof in inputs}
+        for label, data in results.items():
+            report_input(label, data, runs)
+        if not args.no_batch:
+            batch_input = sim
+            if args.batch_scale != 1.0:
+                batch_input, _ = make_sim(work / "batch-sim", args.scene, args.batch_scale)
+            bench_batch(batch_input, files, work)
+    print(f"\nload average at the end {os.getloadavg()[0]:.1f}")
 
 
 if __name__ == "__main__":

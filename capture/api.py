@@ -37,6 +37,7 @@ from mca.processing.pinhole import PinholeCamera
 from mca.processing.result import DepthResult, Recorder
 
 PipelineFunction = Callable[..., DepthResult]
+QUALITIES = ("full", "preview")  # `--quality`: the evaluated defaults, or the faster setting for live use
 DOWNSCALED_RAW_RATIO = 1.5  # a raw this much narrower than its body's active area is a downscaled one
 
 
@@ -166,6 +167,20 @@ def pipeline_options(loaded: LoadedInput) -> dict[str, Any]:
     return {"channel_offsets_px": offsets}
 
 
+def check_quality(quality: str) -> str:
+    """`quality` when it is one of `QUALITIES`, else a ValueError that lists them."""
+    if quality not in QUALITIES:
+        raise ValueError(f"quality must be one of {', '.join(QUALITIES)}, not {quality!r}")
+    return quality
+
+
+def pipeline_params(quality: str = "full") -> Any:
+    """The `processing.pipeline.PipelineParams` of a quality setting ("full": the evaluated defaults, "preview")."""
+    from mca.processing.pipeline import PipelineParams
+
+    return PipelineParams.for_quality(check_quality(quality))
+
+
 def run_depth(
     loaded: LoadedInput,
     profile: CameraProfile,
@@ -173,12 +188,15 @@ def run_depth(
     optics: MCAOptics | None = None,
     pipeline: PipelineFunction | None = None,
     recorder: Recorder | None = None,
+    quality: str = "full",
 ) -> DepthResult:
     """Run the depth pipeline on a prepared input with everything the input implies; the one place that does.
 
     `optics` defaults to `optics_for(profile, loaded)`; `pipeline` replaces
-    `processing.pipeline.run_pipeline` (tests); `recorder` receives each stage's results.
+    `processing.pipeline.run_pipeline` (tests); `recorder` receives each stage's results; `quality`
+    ("full" or "preview") picks the pipeline's parameters (`pipeline_params`).
     """
+    params = pipeline_params(quality)
     if optics is None:
         optics = optics_for(profile, loaded)
     if pipeline is None:
@@ -191,6 +209,7 @@ def run_depth(
         optics,
         pixel_scale=loaded.pixel_scale,
         recorder=recorder,
+        params=params,
         **pipeline_options(loaded),
     )
     if not np.isclose(result.pixel_scale, loaded.pixel_scale):
@@ -199,34 +218,46 @@ def run_depth(
 
 
 def depth_from_frame(
-    frame: RawFrame, profile: str | os.PathLike[str] | CameraProfile, *, recorder: Recorder | None = None
+    frame: RawFrame,
+    profile: str | os.PathLike[str] | CameraProfile,
+    *,
+    recorder: Recorder | None = None,
+    quality: str = "full",
 ) -> DepthResult:
     """Depth of a photograph already in memory (`read_raw`'s result, or `RawFrame.from_planes(...)` of arrays).
 
     `profile` is a `CameraProfile`, a built-in name or a profile TOML path. The result is at processing
     resolution: `result.pixel_scale` input pixels per result pixel, disparities in input pixels, depths in
-    mm from the lens (None without lens data). The same function `mca process` runs.
+    mm from the lens (None without lens data). The same function `mca process` runs; `quality` "preview" is
+    the faster setting for live use (its accuracy beside "full" in docs/evaluation.md).
     """
     chosen = resolve_profile(profile)
-    return run_depth(prepare(frame), chosen, recorder=recorder)
+    return run_depth(prepare(frame), chosen, recorder=recorder, quality=quality)
 
 
 def depth_from_file(
-    path: str | os.PathLike[str], profile: str | os.PathLike[str] | CameraProfile, *, recorder: Recorder | None = None
+    path: str | os.PathLike[str],
+    profile: str | os.PathLike[str] | CameraProfile,
+    *,
+    recorder: Recorder | None = None,
+    quality: str = "full",
 ) -> DepthResult:
     """Depth of the photograph at `path` (CR2, DNG, TIFF, PNG, JPEG, PPM): see `depth_from_frame`."""
-    return depth_from_frame(read_raw(Path(path)), profile, recorder=recorder)
+    return depth_from_frame(read_raw(Path(path)), profile, recorder=recorder, quality=quality)
 
 
 __all__ = [
+    "QUALITIES",
     "LoadedInput",
     "bayer_channel_offsets_px",
     "camera_for",
+    "check_quality",
     "depth_from_file",
     "depth_from_frame",
     "input_pixel_pitch_mm",
     "optics_for",
     "pipeline_options",
+    "pipeline_params",
     "prepare",
     "read_input",
     "resolve_profile",

@@ -36,6 +36,7 @@ from mca.capture.pipeline_app import (
     output_dir_for,
     process_file,
 )
+from mca.capture.threads import limit_threads, threads_per_worker
 from mca.processing.camera import CameraProfile
 
 
@@ -163,10 +164,12 @@ class _Job:
     on_stage: Callable[[Task, str], None] | None = None  # progress display, called in this process
     recorder: Any = None  # a live recorder (inline runner only)
     max_megapixels: float | None = None  # the pixel limit of the inputs (None: capture.raw's default)
+    quality: str = "full"  # `--quality`: the pipeline's parameters (capture.api.QUALITIES)
 
     def kwargs(self, task: Task) -> dict[str, Any]:
         kwargs: dict[str, Any] = {
             "max_megapixels": self.max_megapixels,
+            "quality": self.quality,
             "force": self.force,
             "record_path": task.record_path,
             "out_name": task.out_name,
@@ -227,9 +230,23 @@ def _key(task: Task) -> str:
 _worker_stage_queue: Any = None  # in a pool worker: where stage announcements go (set by the initializer)
 
 
-def _init_pool_worker(queue: Any) -> None:
+def _init_pool_worker(queue: Any, threads: int | None = None) -> None:
     global _worker_stage_queue
     _worker_stage_queue = queue
+    if threads:  # this worker's share of the cores (capture/threads.py), set before the pipeline loads
+        limit_threads(threads)
+
+
+def worker_threads(workers: int) -> int | None:
+    """Compute threads for each of `workers` pool processes: the cores shared out (`threads_per_worker`), or
+    $MCA_WORKER_THREADS when set (0: no limit, every library sizes itself to the whole machine)."""
+    given = os.environ.get("MCA_WORKER_THREADS", "").strip()
+    if given:
+        try:
+            return max(0, int(given)) or None
+        except ValueError:
+            raise BatchError(f"MCA_WORKER_THREADS={given!r}: give a whole number of threads (0: no limit)") from None
+    return threads_per_worker(workers)
 
 
 def _pool_process_file(
@@ -249,8 +266,12 @@ class PoolRunner:
         self.capacity = workers
         context = multiprocessing.get_context("spawn")
         self.stages = context.Queue() if job.on_stage is not None else None
+        self.threads = worker_threads(workers)
         self.executor = concurrent.futures.ProcessPoolExecutor(
-            max_workers=workers, mp_context=context, initializer=_init_pool_worker, initargs=(self.stages,)
+            max_workers=workers,
+            mp_context=context,
+            initializer=_init_pool_worker,
+            initargs=(self.stages, self.threads),
         )
         self.futures: dict[concurrent.futures.Future, Task] = {}
         self.by_key: dict[str, Task] = {}
@@ -544,6 +565,7 @@ def make_runner(
     on_stage: Callable[[Task, str], None] | None = None,
     recorder: Any = None,
     max_megapixels: float | None = None,
+    quality: str = "full",
 ) -> Runner:
     """The runner for the options: a Dask client for `cluster`, else a process pool, or inline for one worker.
 
@@ -557,6 +579,7 @@ def make_runner(
         on_stage=on_stage,
         recorder=recorder,
         max_megapixels=max_megapixels,
+        quality=quality,
     )
     if cluster:
         return DaskRunner(job, cluster)
@@ -596,6 +619,7 @@ def run_batch(
     pipeline: PipelineFunction | None = None,
     recorder: Any = None,
     max_megapixels: float | None = None,
+    quality: str = "full",
 ) -> BatchReport:
     """Process every input under `sources` into `out_root`; with `watch`, keep processing files as they arrive.
 
@@ -605,7 +629,8 @@ def run_batch(
     as one recording whose `shot` timeline steps through the files. A live `recorder` (e.g. one
     serving a web viewer) receives every shot; it needs the files processed here, one at a time.
     A file changed after it was taken (watch mode) is taken again once settled. `max_megapixels`
-    limits the inputs' size (default: `capture.raw.default_max_megapixels()`).
+    limits the inputs' size (default: `capture.raw.default_max_megapixels()`); `quality` ("full" or
+    "preview") picks the pipeline's parameters.
 
     Raises `BatchError` before anything is processed when a source does not exist or the output
     folder cannot be created.
@@ -636,6 +661,7 @@ def run_batch(
         on_stage=progress.stage if getattr(progress, "wants_stages", False) else None,
         recorder=recorder,
         max_megapixels=max_megapixels,
+        quality=quality,
     )
     recording_id = batch_recording_id(Path(record)) if record is not None else None
     parts = out_root / f".mca-recording-parts-{uuid.uuid4().hex[:12]}" if record is not None else None

@@ -22,8 +22,10 @@ import json
 import math
 import os
 import re
+import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -312,39 +314,176 @@ def _file_text(what: str, input_path: Path | None) -> dict[str, str]:
     return text
 
 
-def write_outputs(
-    out_dir: Path,
-    result: DepthResult,
-    loaded: LoadedInput,
-    labels_input: np.ndarray,
-    camera: PinholeCamera | None,
-    *,
-    optics: Any = None,
-    profile: CameraProfile | None = None,
-    threads: int = WRITE_THREADS,
-) -> list[str]:
-    """Write every output except result.json; returns their names relative to `out_dir`.
+class OutputWriter:
+    """Writes one result's files on worker threads while the pipeline is still computing.
 
-    `labels_input` is the region map at input resolution; `camera` is None in disparity-only mode;
-    `optics` (an `MCAOptics`) places slanted regions' quads on their planes; `profile` goes into
-    depth.tiff's description. Displayed images (all-in-focus, layers, GLB textures, point colours)
-    get the input's camera colour (`loaded.colour`: white balance and colour matrix). Independent
-    files are encoded and written by `threads` worker threads; every file's bytes are the same
-    whatever the number of threads or the order they finish in.
+    The depth map (or the disparity map without optics) and the region map go to the writer threads
+    as soon as the pipeline's "depth" stage hands them to its recorder (`on_record`), while the
+    pipeline goes on to the all-in-focus image and the layers; everything else once the result is
+    complete (`submit`), and those files encode while a recording logs the result. Every file
+    lands atomically (capture/outputs.py: a temporary name, then a rename) and its bytes are the
+    same whatever the number of threads, the order they finish in, or whether a file started
+    early. Use as a context manager: leaving it waits for every file (also after an error), so
+    nothing writes into a staging folder that is being discarded.
     """
-    from concurrent.futures import Future, ThreadPoolExecutor
 
-    size = loaded.input_size_px
-    scale = result.pixel_scale
-    colour = loaded.colour
-    source = getattr(loaded.frame, "path", None)
-    with_scene = camera is not None and result.depth_mm is not None
-    layers = ordered_layers(result)
-    boxes = region_boxes(result.labels) if with_scene else []
-    textured: set[int] = set()  # the first layer of a region textures its quad in the GLB
-    distance_mm_of = getattr(optics, "distance_mm", None)
+    def __init__(
+        self,
+        out_dir: Path,
+        loaded: LoadedInput,
+        camera: PinholeCamera | None,
+        *,
+        optics: Any = None,
+        profile: CameraProfile | None = None,
+        threads: int = WRITE_THREADS,
+    ) -> None:
+        from concurrent.futures import ThreadPoolExecutor
 
-    with ThreadPoolExecutor(max_workers=max(1, threads), thread_name_prefix="mca-write") as pool:
+        self.out_dir = out_dir
+        self.loaded = loaded
+        self.camera = camera
+        self.optics = optics
+        self.profile = profile
+        self.seconds: dict[str, float] = {}  # thread-seconds per file (all layers summed as "layers/*.png")
+        self._pool = ThreadPoolExecutor(max_workers=max(1, threads), thread_name_prefix="mca-write")
+        self._lock = threading.Lock()
+        self._early: dict[str, Any] | None = None  # the arrays the depth files were started from, and their tasks
+        self._tasks: list[Future] = []  # each gives a Path, in the order of the written list
+        self._labels_input: Future | None = None
+        self._layer_tasks: list[Future] = []
+        self._ply_task: Future | None = None
+        self._glb: Callable[[], Path] | None = None
+        self._source = getattr(loaded.frame, "path", None)
+
+    def __enter__(self) -> OutputWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=exc[0] is not None)
+
+    # --- what each file holds -----------------------------------------------------------------------------------
+
+    def _timed(self, name: str, function: Callable[..., Any], *args: Any) -> Future:
+        def run() -> Any:
+            start = time.perf_counter()
+            try:
+                return function(*args)
+            finally:
+                with self._lock:
+                    self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - start
+
+        return self._pool.submit(run)
+
+    def _describe_map(self, meaning: str, unit: str) -> dict[str, Any]:
+        return {
+            "meaning": meaning,
+            "unit": unit,
+            "nodata": "NaN",
+            "software": software(),
+            "input": None if self._source is None else str(self._source),
+            "profile": None if self.profile is None else self.profile.name,
+            "profile_source": None if self.profile is None else self.profile.source,
+            "optics": None if self.optics is None else _optics_document(self.optics),
+            "camera": None if self.camera is None else self.camera.describe(),
+            "pixel_convention": "row 0 is the top of the image; input-image pixels",
+        }
+
+    def _depth_tasks(self, labels: np.ndarray, disparity_px: np.ndarray, depth_mm: np.ndarray | None) -> None:
+        """depth.tiff (and disparity.tiff without a scene) and regions.png, from the processing-resolution maps."""
+        out_dir, scale, size = self.out_dir, self.loaded.pixel_scale, self.loaded.input_size_px
+        with_scene = self.camera is not None and depth_mm is not None
+        self._labels_input = self._pool.submit(upsample_nearest, np.asarray(labels), scale, size)
+        labels_input = self._labels_input
+
+        def write_regions() -> Path:
+            return outputs.write_png(
+                out_dir / "regions.png",
+                labels_input.result().astype(np.uint16),
+                text=_file_text(
+                    "region labels: the region id of each input pixel (result.json), 0 = none", self._source
+                ),
+            )
+
+        def write_disparity() -> Path:
+            return outputs.write_tiff_float32(
+                out_dir / "disparity.tiff",
+                upsample_nearest(np.asarray(disparity_px, np.float32), scale, size),
+                description=self._describe_map(
+                    "disparity between the images of the widest filter pair, region model; "
+                    "+ = farther than the focus plane",
+                    "px",
+                ),
+                unit="px",
+                software=software(),
+                nodata=math.nan,
+            )
+
+        def write_depth() -> Path:
+            depth = (
+                np.asarray(depth_mm, dtype=np.float32)
+                if with_scene
+                else np.full(np.asarray(labels).shape, np.nan, dtype=np.float32)
+            )
+            meaning = "distance from the lens along the optical axis"
+            if not with_scene:
+                meaning += " (all NaN: no lens data, see disparity.tiff)"
+            return outputs.write_tiff_float32(
+                out_dir / "depth.tiff",
+                upsample_nearest(depth, scale, size),
+                description=self._describe_map(meaning, "mm"),
+                unit="mm",
+                software=software(),
+                nodata=math.nan,
+            )
+
+        tasks = []
+        if not with_scene:
+            tasks.append(self._timed("disparity.tiff", write_disparity))
+        tasks.append(self._timed("depth.tiff", write_depth))
+        tasks.append(self._timed("regions.png", write_regions))
+        self._tasks.extend(tasks)
+
+    def on_record(self, stage: str, items: dict[str, Any]) -> None:
+        """Hears the pipeline's stages (`_StageTimer`): "depth" starts the depth and region maps."""
+        if stage != "depth" or self._early is not None or "labels" not in items or "disparity_px" not in items:
+            return
+        self._early = {
+            "labels": items["labels"],
+            "disparity_px": items["disparity_px"],
+            "depth_mm": items.get("depth_mm"),
+        }
+        self._depth_tasks(items["labels"], items["disparity_px"], items.get("depth_mm"))
+
+    def _early_matches(self, result: DepthResult) -> bool:
+        early = self._early
+        return (
+            early is not None
+            and early["labels"] is result.labels
+            and early["disparity_px"] is result.disparity_px
+            and early["depth_mm"] is result.depth_mm
+            and bool(np.isclose(result.pixel_scale, self.loaded.pixel_scale))
+        )
+
+    def submit(self, result: DepthResult) -> None:
+        """Start every file not started yet (all of them when the depth maps did not come early, or changed)."""
+        if not self._early_matches(result):
+            if self._early is not None:  # the result is not what the early files were made of: make them again
+                for task in self._tasks:
+                    task.exception()  # wait: the rewrite must land after them
+                self._tasks = []
+                self._early = None
+            self._depth_tasks(result.labels, result.disparity_px, result.depth_mm)
+        self._rest_tasks(result)
+
+    def _rest_tasks(self, result: DepthResult) -> None:
+        out_dir, loaded, camera, source = self.out_dir, self.loaded, self.camera, self._source
+        scale, colour = result.pixel_scale, loaded.colour
+        with_scene = camera is not None and result.depth_mm is not None
+        layers = ordered_layers(result)
+        boxes = region_boxes(result.labels) if with_scene else []
+        textured: set[int] = set()  # the first layer of a region textures its quad in the GLB
+        distance_mm_of = getattr(self.optics, "distance_mm", None)
+        pool = self._pool
         # Tasks run first in, first out, and a task only waits for ones submitted before it: no deadlock.
         conversions: dict[int, Future] = {}
 
@@ -359,55 +498,6 @@ def write_outputs(
         for layer in layers:
             if layer.lazy_source is not None:
                 convert(layer.lazy_source[0])
-
-        def describe_map(meaning: str, unit: str) -> dict[str, Any]:
-            return {
-                "meaning": meaning,
-                "unit": unit,
-                "nodata": "NaN",
-                "software": software(),
-                "input": None if source is None else str(source),
-                "profile": None if profile is None else profile.name,
-                "profile_source": None if profile is None else profile.source,
-                "optics": None if optics is None else _optics_document(optics),
-                "camera": None if camera is None else camera.describe(),
-                "pixel_convention": "row 0 is the top of the image; input-image pixels",
-            }
-
-        def write_depth() -> list[Path]:
-            written = []
-            if with_scene:
-                depth = np.asarray(result.depth_mm, dtype=np.float32)
-            else:
-                depth = np.full(result.labels.shape, np.nan, dtype=np.float32)
-                written.append(
-                    outputs.write_tiff_float32(
-                        out_dir / "disparity.tiff",
-                        upsample_nearest(np.asarray(result.disparity_px, np.float32), scale, size),
-                        description=describe_map(
-                            "disparity between the images of the widest filter pair, region model; "
-                            "+ = farther than the focus plane",
-                            "px",
-                        ),
-                        unit="px",
-                        software=software(),
-                        nodata=math.nan,
-                    )
-                )
-            meaning = "distance from the lens along the optical axis"
-            if not with_scene:
-                meaning += " (all NaN: no lens data, see disparity.tiff)"
-            written.append(
-                outputs.write_tiff_float32(
-                    out_dir / "depth.tiff",
-                    upsample_nearest(depth, scale, size),
-                    description=describe_map(meaning, "mm"),
-                    unit="mm",
-                    software=software(),
-                    nodata=math.nan,
-                )
-            )
-            return written
 
         def write_layer(index: int, layer: Any, box: tuple[slice, slice] | None) -> tuple[Path, bytes | None]:
             rgba8 = _layer_rgba8(layer, srgb8_of, colour)
@@ -439,55 +529,90 @@ def write_outputs(
             )
 
         # the longest tasks first, so that neither thread is left with a long one at the end
-        all_in_focus_task = pool.submit(
-            lambda: outputs.write_png(
-                out_dir / "all_in_focus.png",
-                srgb8_of(result.all_in_focus),
-                srgb=True,
-                text=_file_text("all-in-focus image: each region's colour channels re-aligned, sRGB", source),
+        self._tasks.append(
+            self._timed(
+                "all_in_focus.png",
+                lambda: outputs.write_png(
+                    out_dir / "all_in_focus.png",
+                    srgb8_of(result.all_in_focus),
+                    srgb=True,
+                    text=_file_text("all-in-focus image: each region's colour channels re-aligned, sRGB", source),
+                ),
             )
         )
-        regions_task = pool.submit(
-            outputs.write_png,
-            out_dir / "regions.png",
-            labels_input.astype(np.uint16),
-            text=_file_text("region labels: the region id of each input pixel (result.json), 0 = none", source),
-        )
-        depth_task = pool.submit(write_depth)
         layer_tasks = []
         for index, layer in enumerate(layers):
             box = None
             if with_scene and layer.region_id not in textured and 0 < layer.region_id <= len(boxes):
                 textured.add(layer.region_id)
                 box = boxes[layer.region_id - 1]
-            layer_tasks.append((layer.region_id, pool.submit(write_layer, index, layer, box)))
-        ply_task = pool.submit(write_scene_ply) if with_scene else None
+            layer_tasks.append((layer.region_id, self._timed("layers/*.png", write_layer, index, layer, box)))
+        ply_task = self._timed("scene.ply", write_scene_ply) if with_scene else None
 
-        paths: list[Path] = depth_task.result() + [regions_task.result(), all_in_focus_task.result()]
-        textures: dict[int, bytes] = {}
-        for region_id, task in layer_tasks:
-            path, texture = task.result()
-            paths.append(path)
-            if texture is not None:
-                textures[region_id] = texture
-        if with_scene and camera is not None and ply_task is not None:
-            paths.append(ply_task.result())
+        def write_glb() -> Path:
+            assert camera is not None
+            textures: dict[int, bytes] = {}
+            for region_id, task in layer_tasks:
+                texture = task.result()[1]
+                if texture is not None:
+                    textures[region_id] = texture
             quads = region_quads(result, textures, srgb8_of(result.all_in_focus), camera, boxes, distance_mm_of)
             gltf_camera = outputs.GltfCamera(
                 yfov_rad=camera.yfov_rad,
                 aspect_ratio=camera.width_px / camera.height_px,
                 extras=camera.describe(),
             )
-            paths.append(
-                outputs.write_glb(
-                    out_dir / "scene.glb",
-                    quads,
-                    camera=gltf_camera,
-                    generator=software(),
-                    asset_extras={"scene_frame": SCENE_FRAME, "input": None if source is None else str(source)},
-                )
+            return outputs.write_glb(
+                out_dir / "scene.glb",
+                quads,
+                camera=gltf_camera,
+                generator=software(),
+                asset_extras={"scene_frame": SCENE_FRAME, "input": None if source is None else str(source)},
             )
-    return [path.relative_to(out_dir).as_posix() for path in paths]
+
+        self._layer_tasks = [task for _, task in layer_tasks]
+        self._ply_task = ply_task
+        self._glb = write_glb if with_scene and camera is not None and ply_task is not None else None
+
+    @property
+    def labels_input(self) -> np.ndarray:
+        """The region map at input resolution (after `submit`)."""
+        assert self._labels_input is not None, "submit the result first"
+        return self._labels_input.result()
+
+    def finish(self) -> list[str]:
+        """Wait for every file; their names relative to the output folder (result.json is the caller's)."""
+        paths: list[Path] = [task.result() for task in self._tasks]
+        paths += [task.result()[0] for task in self._layer_tasks]
+        if self._ply_task is not None:
+            paths.append(self._ply_task.result())
+        if self._glb is not None:
+            start = time.perf_counter()
+            paths.append(self._glb())
+            self.seconds["scene.glb"] = time.perf_counter() - start
+        return [path.relative_to(self.out_dir).as_posix() for path in paths]
+
+
+def write_outputs(
+    out_dir: Path,
+    result: DepthResult,
+    loaded: LoadedInput,
+    camera: PinholeCamera | None,
+    *,
+    optics: Any = None,
+    profile: CameraProfile | None = None,
+    threads: int = WRITE_THREADS,
+) -> list[str]:
+    """Write every output except result.json; returns their names relative to `out_dir` (see `OutputWriter`).
+
+    `camera` is None in disparity-only mode; `optics` (an `MCAOptics`) places slanted regions' quads on
+    their planes; `profile` goes into depth.tiff's description. Displayed images (all-in-focus, layers,
+    GLB textures, point colours) get the input's camera colour (`loaded.colour`: white balance and colour
+    matrix).
+    """
+    with OutputWriter(out_dir, loaded, camera, optics=optics, profile=profile, threads=threads) as writer:
+        writer.submit(result)
+        return writer.finish()
 
 
 def _optics_document(optics: Any) -> dict[str, float]:
@@ -515,8 +640,12 @@ def result_document(
     optics: Any,
     written: list[str],
     timings_s: dict[str, float],
+    *,
+    quality: str = "full",
 ) -> dict[str, Any]:
-    """The content of result.json (see docs/outputs.md); region pixels are counted at input resolution."""
+    """The content of result.json (see docs/outputs.md); region pixels are counted at input resolution.
+
+    `settings` names the quality setting and the pipeline parameters it stands for."""
     counts = np.bincount(
         labels_input.ravel().astype(np.intp), minlength=max([r.id for r in result.regions], default=0) + 1
     )
@@ -548,6 +677,10 @@ def result_document(
         "software": software(),
         "input": str(input_path),
         "profile": profile.name,
+        "settings": {
+            "quality": quality,
+            "pipeline_params": outputs.json_safe(dataclasses.asdict(api.pipeline_params(quality))),
+        },
         "focus_region": None if result.focus_region is None else int(result.focus_region),
         "regions": regions,
         "timings_s": {k: round(float(v), 6) for k, v in timings_s.items()},
@@ -611,12 +744,20 @@ def _announce(on_stage: StageCallback | None, stage: str) -> None:
 class _StageTimer:
     """Forwards to a recorder, remembers each stage's timing and announces it to a progress display."""
 
-    def __init__(self, inner: Any = None, on_stage: StageCallback | None = None) -> None:
+    def __init__(
+        self,
+        inner: Any = None,
+        on_stage: StageCallback | None = None,
+        on_record: Callable[[str, dict[str, Any]], None] | None = None,
+    ) -> None:
         self.inner = inner
         self.on_stage = on_stage
+        self.on_record = on_record  # e.g. `OutputWriter.on_record`: starts files as their data is ready
         self.timings_s: dict[str, float] = {}
 
     def record(self, stage: str, **items: Any) -> None:
+        if self.on_record is not None:
+            self.on_record(stage, items)
         if self.inner is not None:
             self.inner.record(stage, **items)
 
@@ -640,23 +781,35 @@ def is_finished(out_dir: Path) -> bool:
     return (out_dir / RESULT_NAME).is_file()
 
 
-def settings_key(profile: CameraProfile) -> str:
-    """sha256 of what decides the outputs besides the photograph: the profile's values and result.json's
+def settings_key(profile: CameraProfile, quality: str = "full") -> str:
+    """sha256 of what decides the outputs besides the photograph: the profile's values, the quality setting
+    (`--quality`: a preview result never stands for a full one, nor the other way round) and result.json's
     `schema_version` (raising it makes reruns redo finished folders).
 
     The version of mca is not part of it: after an upgrade, `--force` recomputes finished folders.
     """
     described = dataclasses.asdict(profile)
     described.pop("source", None)  # where the profile file lies does not change the result
-    payload = {"format": RESULT_SCHEMA_VERSION, "profile": outputs.json_safe(described)}
+    payload: dict[str, Any] = {"format": RESULT_SCHEMA_VERSION, "profile": outputs.json_safe(described)}
+    if api.check_quality(quality) != "full":  # "full" keeps the key results had before --quality existed
+        payload["quality"] = quality
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode("utf-8")).hexdigest()
 
 
 def _unchanged_reason(
-    document: dict[str, Any] | None, source: output_folders.SourceId, key: str, profile: CameraProfile, folder: Path
+    document: dict[str, Any] | None,
+    source: output_folders.SourceId,
+    key: str,
+    profile: CameraProfile,
+    folder: Path,
+    quality: str = "full",
 ) -> str | None:
     """Why the finished result in `folder` can stand for this input, or None when it must be made again."""
     if document is None:
+        return None
+    settings = document.get("settings")
+    recorded_quality = settings.get("quality", "full") if isinstance(settings, dict) else "full"
+    if recorded_quality != quality:  # also guards results whose key predates --quality
         return None
     recorded = document.get("source")
     if isinstance(recorded, dict):
@@ -740,6 +893,7 @@ def process_file(
     recording_id: str | None = None,
     recorder: Any = None,
     max_megapixels: float | None = None,
+    quality: str = "full",
 ) -> FileOutcome:
     """Process one photograph into `out_root/<name>/`; never raises for a bad file.
 
@@ -757,8 +911,11 @@ def process_file(
     `capture.recording.RerunRecorder` kept open by the caller, e.g. one serving a viewer or a
     tethered session) is used instead and left open. `pipeline` replaces
     `processing.pipeline.run_pipeline` (tests); `on_stage(name)` is called as each of `STAGES` finishes.
+    `quality` ("full" or "preview", `capture.api.QUALITIES`) picks the pipeline's parameters; it is part of
+    the settings key and of result.json's `settings`, so a preview result never passes for a full one.
     """
     started = time.perf_counter()
+    api.check_quality(quality)
     input_path = Path(input_path)
     planned = output_dir_for(input_path, Path(out_root), out_name)
 
@@ -783,7 +940,8 @@ def process_file(
         with output_folders.claim_folder(root, planned.name, source) as claim:
             out_dir = claim.final
             if not force:
-                finished = _unchanged_reason(claim.existing_result(), source, settings_key(profile), profile, out_dir)
+                key = settings_key(profile, quality)
+                finished = _unchanged_reason(claim.existing_result(), source, key, profile, out_dir, quality)
                 if finished is not None:
                     return outcome("skipped", out_dir, reason=finished)
             staging = claim.new_staging()
@@ -799,8 +957,9 @@ def process_file(
                         shot_index=shot_index,
                         recording_id=recording_id,
                         live_recorder=recorder,
+                        quality=quality,
                     )
-                _stamp_result(staging / RESULT_NAME, source, settings_key(profile))
+                _stamp_result(staging / RESULT_NAME, source, settings_key(profile, quality))
                 claim.commit(staging)
             finally:
                 claim.discard(staging)  # gone after a commit; after a failure the previous result stays
@@ -822,6 +981,7 @@ def _process(
     shot_index: int = 0,
     recording_id: str | None = None,
     live_recorder: Any = None,
+    quality: str = "full",
 ) -> int:
     run = pipeline or _default_pipeline()
     timings: dict[str, float] = {}
@@ -830,8 +990,14 @@ def _process(
     timings["read"] = time.perf_counter() - t0
     _announce(on_stage, "read")
     optics = _optics_for(profile, loaded)
+    camera = api.camera_for(optics, loaded)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / RESULT_NAME).unlink(missing_ok=True)  # unfinished from here until the new one lands
+    _clean_folder(out_dir)
 
     with contextlib.ExitStack() as stack:
+        # first in, last out: leaving waits for every file, also when the pipeline or the recording fails
+        writer = stack.enter_context(OutputWriter(out_dir, loaded, camera, optics=optics, profile=profile))
         recorder = live_recorder
         if recorder is None and record_path is not None:
             from mca.capture.recording import RerunRecorder
@@ -842,28 +1008,30 @@ def _process(
         if recorder is not None:
             recorder.begin_shot(shot_index, input_path.stem, _capture_time(loaded.metadata), profile)
             recorder.log_input(loaded.frame)
-        timer = _StageTimer(recorder, on_stage)
+        timer = _StageTimer(recorder, on_stage, on_record=writer.on_record)
         t0 = time.perf_counter()
-        result = api.run_depth(loaded, profile, optics=optics, pipeline=run, recorder=timer)  # the Python API's path
+        result = api.run_depth(
+            loaded, profile, optics=optics, pipeline=run, recorder=timer, quality=quality
+        )  # the Python API's path
         timings.update(timer.timings_s)
         timings.update({k: float(v) for k, v in (result.timings_s or {}).items()})
         timings["pipeline"] = time.perf_counter() - t0
+        writer.submit(result)  # the files encode on the writer threads while the recording logs the result
         if recorder is not None:
+            t0 = time.perf_counter()
             recorder.log_result(result, profile, optics)
-
-    camera = api.camera_for(optics, loaded)
-
-    t0 = time.perf_counter()
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / RESULT_NAME).unlink(missing_ok=True)  # unfinished from here until the new one lands
-    _clean_folder(out_dir)
-    labels_input = upsample_nearest(np.asarray(result.labels), result.pixel_scale, loaded.input_size_px)
-    written = write_outputs(out_dir, result, loaded, labels_input, camera, optics=optics, profile=profile)
-    if record_path is not None and Path(record_path).parent == out_dir:
-        written.append(Path(record_path).name)
-    timings["write"] = time.perf_counter() - t0
+            timings["record"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        written = writer.finish()
+        labels_input = writer.labels_input
+        if record_path is not None and Path(record_path).parent == out_dir:
+            written.append(Path(record_path).name)
+        timings["write"] = time.perf_counter() - t0  # waiting for the files once the pipeline (and recording) ended
+        timings.update({f"write {name}": seconds for name, seconds in writer.seconds.items()})
     _announce(on_stage, "write")
-    document = result_document(input_path, profile, result, loaded, labels_input, optics, written, timings)
+    document = result_document(
+        input_path, profile, result, loaded, labels_input, optics, written, timings, quality=quality
+    )
     outputs.write_json(out_dir / RESULT_NAME, document)
     return len(result.regions)
 

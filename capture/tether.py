@@ -242,6 +242,7 @@ class TetherSession:
         delete_after_verify: bool = False,
         process: bool = False,
         profile: str | None = None,
+        quality: str = "full",
         record: Path | None = None,
         log: Callable[[str], None] = lambda msg: None,
         progress: Callable[[int, int], None] | None = None,
@@ -274,6 +275,7 @@ class TetherSession:
         self.delete_after_verify = delete_after_verify
         self.process = process
         self.profile = profile
+        self.quality = quality  # with `process`: "full" or "preview" (capture.api.QUALITIES)
         self.record = record
         self.log = log
         self.recording_error: str | None = None  # set by close() when the recording could not be written out
@@ -649,7 +651,12 @@ class TetherSession:
             if self._profile_obj is None:
                 self._profile_obj = load_profile(self.profile or DEFAULT_PROFILE)
             outcome = pipeline_app.process_file(
-                path, self.out_dir, self._profile_obj, recorder=self._live_recorder(), shot_index=shot_id
+                path,
+                self.out_dir,
+                self._profile_obj,
+                recorder=self._live_recorder(),
+                shot_index=shot_id,
+                quality=self.quality,
             )
         except Exception as exc:
             outcome = None

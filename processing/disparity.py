@@ -125,8 +125,18 @@ def parallel_map(function, items) -> list:
     return list(_pool().map(function, items))
 
 
-_WORKERS = max(1, min(4, os.cpu_count() or 1))
+# helper threads; MCA_THREADS: a batch worker's share of the cores (capture/threads.py)
+_WORKERS = int(os.environ.get("MCA_THREADS") or 0) or max(1, min(4, os.cpu_count() or 1))
 _POOL: ThreadPoolExecutor | None = None
+
+
+def set_worker_threads(count: int) -> None:
+    """Use `count` helper threads from now on (a batch worker's share of the cores; see capture/threads.py)."""
+    global _WORKERS, _POOL
+    _WORKERS = max(1, int(count))
+    if _POOL is not None:
+        _POOL.shutdown(wait=False)
+        _POOL = None
 
 
 def _pool() -> ThreadPoolExecutor:

@@ -132,6 +132,13 @@ def capture(
     interval: float = typer.Option(0.0, "--interval", help="seconds between shot starts"),
     out: Path | None = typer.Option(None, "--out", "-o", help="folder for the files and catalog.sqlite"),
     process: bool = typer.Option(False, "--process", help="run the depth pipeline on each shot"),
+    quality: str = typer.Option(
+        "full",
+        "--quality",
+        metavar="full|preview",
+        help="with --process: full (the evaluated settings) or preview (faster, for a first look); "
+        "--live always shows its own quick preview",
+    ),
     profile: str | None = typer.Option(None, "--profile", help="processing profile (default: config, paper-70d)"),
     record: Path | None = typer.Option(None, "--record", help="rerun recording FILE.rrd (--process, --live)"),
     tethered: bool = typer.Option(
@@ -174,6 +181,14 @@ def capture(
         camera, profile = chosen["camera"], chosen["profile"]
     except ConfigError as exc:
         typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+
+    from mca.capture.api import check_quality
+
+    try:
+        check_quality(quality)
+    except ValueError as exc:
+        typer.echo(f"error: --quality: {exc}", err=True)
         raise typer.Exit(2) from exc
 
     from mca.capture.file_names import FilenamePattern, FilenamePatternError
@@ -240,6 +255,7 @@ def capture(
             delete_after_verify=delete_after_verify,
             process=process,
             profile=profile,
+            quality=quality,
             record=record,
             log=lambda m: typer.echo(f"  {m}", err=True),
             progress=bar,

@@ -83,6 +83,13 @@ def register(app: typer.Typer) -> None:
             None, "--workers", "-j", min=1, help="Files processed in parallel on this machine (default: config, 1)."
         ),
         force: bool = typer.Option(False, "--force", help="Redo inputs whose output folder is already finished."),
+        quality: str = typer.Option(
+            "full",
+            "--quality",
+            metavar="full|preview",
+            help="full: the evaluated settings; preview: faster, coarser regions for live use (recorded in "
+            "result.json; a preview result is never taken for a full one).",
+        ),
         watch: bool = typer.Option(False, "--watch", help="Keep processing files as they arrive in the folders."),
         watch_timeout: float | None = typer.Option(
             None, "--watch-timeout", metavar="S", help="With --watch: stop after S seconds with nothing new."
@@ -158,6 +165,13 @@ def register(app: typer.Typer) -> None:
         except ValueError as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(2) from None
+        from mca.capture.api import check_quality
+
+        try:
+            check_quality(quality)
+        except ValueError as exc:
+            typer.echo(f"error: --quality: {exc}", err=True)
+            raise typer.Exit(2) from None
         missing = [str(p) for p in inputs if not p.exists() and not p.is_symlink()]
         if missing:
             typer.echo(f"error: no such file or folder: {', '.join(missing)}; check the path", err=True)
@@ -210,6 +224,7 @@ def register(app: typer.Typer) -> None:
                     progress=progress,
                     recorder=live,
                     max_megapixels=max_megapixels,
+                    quality=quality,
                 )
             except BatchError as exc:
                 typer.echo(f"error: {exc}", err=True)
