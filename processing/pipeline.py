@@ -32,10 +32,10 @@ import numpy as np
 
 from mca.processing.camera import FilterAperture
 from mca.processing.cost import stack_bands
-from mca.processing.dense import DenseParams, estimate_dense
+from mca.processing.dense import DenseDisparity, DenseParams, estimate_dense
 from mca.processing.depth import depth_map_mm, region_depth
 from mca.processing.disparity import parallel_map, warp_channels
-from mca.processing.features import display_gamma, feature_bands
+from mca.processing.features import display_gamma, feature_bands, texture_energy
 from mca.processing.mpi import all_in_focus, multi_plane_images
 from mca.processing.optics import MCAOptics
 from mca.processing.refine import Refinement, RefineParams, refine_regions
@@ -65,6 +65,7 @@ class PipelineParams:
     dense: DenseParams = field(default_factory=DenseParams)
     surfaces: SurfaceParams = field(default_factory=SurfaceParams)
     sketch: SketchParams = field(default_factory=SketchParams)
+    evidence: str = "texture"  # what weighs a pixel's dense disparity in the surfaces: "texture", "confidence", "none"
     refine: RefineParams | None = field(default_factory=RefineParams)  # None: the surfaces' disparity as it is
 
 
@@ -217,7 +218,9 @@ def run_pipeline(
 
     with timer.stage("surfaces"):
         aligned = display_gamma(warp_channels(small, aperture, dense.disparity_px))
-        surfaces = build_surfaces(aligned, dense.disparity_px, params.surfaces)
+        surfaces = build_surfaces(
+            aligned, dense.disparity_px, params.surfaces, evidence=_evidence(small, dense, params.evidence)
+        )
         recorder.record("surfaces", labels=surfaces.labels, count=surfaces.count)
 
     with timer.stage("sketch"):
@@ -292,6 +295,17 @@ def run_pipeline(
         pixel_scale=pixel_scale,
         timings_s=timer.timings,
     )
+
+
+def _evidence(planes: np.ndarray, dense: DenseDisparity, kind: str) -> np.ndarray | None:
+    """How much each pixel's dense disparity is worth: its texture relative to the image's median texture
+    (saturating at 1), or the dense confidence."""
+    if kind == "none":
+        return None
+    if kind == "confidence":
+        return dense.confidence
+    energy = texture_energy(feature_bands(planes), 9)
+    return np.clip(energy / (float(np.median(energy)) + 1e-9), 0.0, 1.0).astype(np.float32)
 
 
 def _no_refinement(sketch: Sketch, disparity: np.ndarray) -> Refinement:

@@ -25,6 +25,8 @@ class SketchParams:
     continuity_px: float = 0.6  # neighbouring regions whose planes meet within this (mean over the boundary) join
     colour_distance: float = 0.35  # ... when their mean display colours are at most this far apart
     min_region_fraction: float = 0.002  # smaller regions join a neighbour
+    sliver_fraction: float = 0.01  # a region smaller than this ...
+    sliver_width_px: float = 12.0  # ... and on average thinner (2 area / boundary) is a rim sliver
     occlusion_margin_px: float = 0.5  # a region occludes a neighbour this much farther along their boundary
     slant_px: float = 0.5  # a region whose plane varies more than this over its extent is slanted
     focus_tolerance_px: float = 0.5  # in-focus region: |disparity| at most this (input px: at least 1)
@@ -95,6 +97,8 @@ def _merge_continuous(surfaces: Surfaces, abs_gaps: np.ndarray, params: SketchPa
     count = surfaces.count
     area = surfaces.areas.astype(np.float64).copy()
     colour_sum = surfaces.colours * area[:, None]
+    flat = surfaces.labels.ravel()
+    disparity_sum = np.bincount(flat, surfaces.disparity().ravel().astype(np.float64), count)
     links: dict[int, dict[int, list[float]]] = {i: {} for i in range(count)}
     for (i, j), gap, length in zip(surfaces.pairs, abs_gaps, surfaces.pair_lengths, strict=True):
         i, j = int(i), int(j)
@@ -109,6 +113,7 @@ def _merge_continuous(surfaces: Surfaces, abs_gaps: np.ndarray, params: SketchPa
         sets.parent[b] = a
         area[a] += area[b]
         colour_sum[a] += colour_sum[b]
+        disparity_sum[a] += disparity_sum[b]
         del links[a][b]
         for other, (gap_len, length) in links.pop(b).items():
             if other == a:
@@ -149,6 +154,24 @@ def _merge_continuous(surfaces: Surfaces, abs_gaps: np.ndarray, params: SketchPa
             break
         r = min(small, key=lambda k: area[k])
         other = min(links[r], key=lambda k: links[r][k][0] / max(links[r][k][1], 1e-9))
+        merge(min(r, other), max(r, other))
+    # rim slivers: a thin strip along an occluding edge is where the windows saw both sides (and the disoccluded
+    # background); it joins the farthest neighbour that shares at least a quarter of its boundary
+    sliver_area = params.sliver_fraction * float(surfaces.labels.size)
+    for _ in range(count):
+        slivers = [
+            r
+            for r in links
+            if links[r]
+            and area[r] < sliver_area
+            and 2.0 * area[r] / max(sum(v[1] for v in links[r].values()), 1.0) < params.sliver_width_px
+        ]
+        if not slivers:
+            break
+        r = min(slivers, key=lambda k: area[k])
+        perimeter = sum(v[1] for v in links[r].values())
+        sharing = [k for k in links[r] if links[r][k][1] >= 0.25 * perimeter] or list(links[r])
+        other = max(sharing, key=lambda k: disparity_sum[k] / area[k])
         merge(min(r, other), max(r, other))
     return np.array([sets.find(i) for i in range(count)])
 

@@ -6,10 +6,11 @@ carry the depth across: the image is cut into superpixels along its colour edges
 image), each superpixel gets a robust plane fitted to the dense disparity, and then each superpixel chooses
 one plane among its own and those of its neighbours within two rings, minimising
 
-    E = sum_s sum_(x in s) min(|d(x) - P_s(x)|, tau_data)                                    (data)
+    E = sum_s sum_(x in s) e(x) min(|d(x) - P_s(x)|, tau_data)                               (data)
       + lam * sum_(s,t adjacent) len_st * exp(-|c_s - c_t|^2 / sigma^2) * min(tau, |P_s - P_t|_boundary)
 
-(smoothness: neighbours of similar colour should continue each other's plane across their shared boundary).
+(smoothness: neighbours of similar colour should continue each other's plane across their shared boundary);
+e(x) in [0, 1] is the evidence of pixel x (its texture): where there is none, the neighbours decide.
 The minimisation is iterated conditional modes over the superpixels (compiled with numba). A plane
 (a, b, c) gives disparity a x + b y + c at pixel (x, y) of the analysis grid.
 """
@@ -221,10 +222,11 @@ def _graph(labels: np.ndarray, count: int, rings: int, samples: int) -> _Graph:
 
 
 @nb.njit(cache=True, parallel=True, fastmath=True)
-def _data_terms(disparity, width, planes, pix_ptr, pix_index, cand_ptr, cand_list, clip):  # type: ignore[no-untyped-def]
+def _data_terms(disparity, evidence, width, planes, pix_ptr, pix_index, cand_ptr, cand_list, clip):  # type: ignore[no-untyped-def]
     n = pix_ptr.shape[0] - 1
     out = np.zeros(cand_list.shape[0], np.float64)
     flat = disparity.ravel()
+    weight = evidence.ravel()
     for s in nb.prange(n):
         for k in range(cand_ptr[s], cand_ptr[s + 1]):
             p = cand_list[k]
@@ -234,7 +236,7 @@ def _data_terms(disparity, width, planes, pix_ptr, pix_index, cand_ptr, cand_lis
                 idx = pix_index[i]
                 y = idx // width
                 x = idx - y * width
-                acc += min(abs(flat[idx] - (a * x + b * y + c)), clip)
+                acc += weight[idx] * min(abs(flat[idx] - (a * x + b * y + c)), clip)
             out[k] = acc
     return out
 
@@ -283,10 +285,15 @@ def _icm(
 
 
 def build_surfaces(
-    image: np.ndarray, disparity: np.ndarray, params: SurfaceParams = SurfaceParams(), labels: np.ndarray | None = None
+    image: np.ndarray,
+    disparity: np.ndarray,
+    params: SurfaceParams = SurfaceParams(),
+    labels: np.ndarray | None = None,
+    evidence: np.ndarray | None = None,
 ) -> Surfaces:
     """Superpixels of `image` (H, W, 3 display colour in [0, 1], fringe-free) with a plane each, chosen to fit
-    `disparity` (H, W) and to continue their neighbours' planes (see the module docstring)."""
+    `disparity` (H, W) and to continue their neighbours' planes (see the module docstring). `evidence` (H, W)
+    in [0, 1] weighs each pixel's disparity in the fits and the data term (None: all alike)."""
     if labels is None:
         labels = superpixels(image, params)
     count = int(labels.max()) + 1
@@ -297,10 +304,18 @@ def build_surfaces(
         )
         / np.maximum(areas, 1)[:, None]
     )
-    fitted = fit_planes(labels, count, disparity, interior_weights(labels, params.interior_px), params.slope_ridge)
+    evidence = np.ones(labels.shape, np.float32) if evidence is None else np.asarray(evidence, np.float32)
+    fitted = fit_planes(
+        labels,
+        count,
+        disparity,
+        interior_weights(labels, params.interior_px) * np.maximum(evidence, 0.02),
+        params.slope_ridge,
+    )
     graph = _graph(labels, count, params.rings, params.boundary_samples)
     data = _data_terms(
         np.ascontiguousarray(disparity, np.float32),
+        np.ascontiguousarray(evidence, np.float32),
         labels.shape[1],
         fitted,
         graph.pix_ptr,

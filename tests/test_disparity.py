@@ -1,4 +1,5 @@
-"""Per-pixel MCA disparity and region refinement on synthetic shifted textures with known disparity."""
+"""The window-based winner-takes-all disparity (`processing.disparity`, the colour-line peer and the live preview's
+building blocks) on synthetic shifted textures with known disparity."""
 
 from __future__ import annotations
 
@@ -8,7 +9,6 @@ import pytest
 
 from mca.capture.profiles import load_profile
 from mca.processing.disparity import DisparityParams, channel_shifts, estimate_disparity, shift_channels
-from mca.processing.sketch import RefineParams, refine_regions
 
 APERTURE = load_profile("paper-70d").aperture
 
@@ -55,49 +55,3 @@ def test_integer_wta_has_no_sub_pixel():
         mca_image(sharp, 1.3), APERTURE, (-4.0, 4.0), DisparityParams(step_px=1.0, subpixel=False)
     )
     assert set(np.unique(result.disparity_px)) <= set(np.arange(-5.0, 6.0))
-
-
-@pytest.mark.parametrize("truth", [-2.37, 1.72])
-def test_region_refinement_is_precise(truth):
-    sharp = textured((200, 240), 4, blur_px=2.5)
-    planes = mca_image(sharp, truth)
-    labels = np.ones(planes.shape[:2], np.int32)
-    weights = np.ones(planes.shape[:2], np.float32)
-    refined, dips = refine_regions(
-        planes, APERTURE, labels, weights, {1: (0.0, 0.0, truth + 0.6)}, {1: False}, RefineParams()
-    )
-    assert abs(refined[1][2] - truth) < 0.1
-    assert dips[1] > 0.2
-
-
-def test_region_refinement_fits_a_slant():
-    sharp = textured((200, 300), 5, blur_px=2.5)
-    ys, xs = np.mgrid[0:200, 0:300].astype(np.float32)
-    slope, offset = 0.012, -1.0  # disparity -1 .. +2.6 across the image
-    d = slope * xs + offset
-    shifts = channel_shifts(APERTURE)
-    planes = np.dstack(
-        [
-            cv2.remap(
-                np.ascontiguousarray(sharp[..., c]),
-                xs - d * np.float32(shifts[c, 0]),
-                ys - d * np.float32(shifts[c, 1]),
-                cv2.INTER_CUBIC,
-                borderMode=cv2.BORDER_REFLECT,
-            )
-            for c in range(3)
-        ]
-    )
-    labels = np.ones((200, 300), np.int32)
-    refined, _ = refine_regions(
-        planes,
-        APERTURE,
-        labels,
-        np.ones((200, 300), np.float32),
-        {1: (0.008, 0.0, -0.5)},
-        {1: True},
-        RefineParams(cell_px=40),
-    )
-    a, b, c = refined[1]
-    assert abs(a - slope) < 0.002 and abs(b) < 0.002
-    assert abs((a * 150 + b * 100 + c) - (slope * 150 + offset)) < 0.08

@@ -1,0 +1,47 @@
+"""Dense disparity (`processing.dense`): sub-pixel recovery of known shifts, the occupied range, confidence."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from mca_scenes import render_layers, texture, two_boxes_scene
+
+from mca.capture.profiles import load_profile
+from mca.processing.dense import DenseParams, candidate_disparities, estimate_dense, occupied_range
+
+APERTURE = load_profile("paper-70d").aperture
+
+
+def test_candidates_cover_the_range_and_contain_zero():
+    c = candidate_disparities((-3.2, 4.1), 0.5)
+    assert c[0] <= -3.2 and c[-1] >= 4.1 and 0.0 in c
+    assert np.allclose(np.diff(c), 0.5)
+
+
+@pytest.mark.parametrize("truth", [-4.3, 0.0, 1.7, 6.25])
+def test_uniform_disparity_is_recovered_to_a_fraction_of_a_pixel(truth):
+    shape = (160, 200)
+    image = render_layers([(texture(shape, 1), np.ones(shape, np.float32), truth)], shape, APERTURE)
+    result = estimate_dense(image, APERTURE, (-12.0, 12.0))
+    core = result.disparity_px[30:-30, 30:-30]
+    assert abs(float(np.median(core)) - truth) < 0.1
+    assert float(np.mean(np.abs(core - truth) < 0.3)) > 0.95
+    low, high = result.search_range_px
+    assert low <= truth <= high and high - low < 24.0  # narrowed around the scene
+
+
+def test_occupied_range_contains_every_surface_and_little_else():
+    image, _, truth = two_boxes_scene(APERTURE)
+    low, high = occupied_range(image, APERTURE, (-30.0, 30.0), DenseParams())
+    assert low <= min(truth.values()) and high >= max(truth.values())
+    assert high - low < 25.0
+
+
+def test_depth_steps_between_objects_are_kept():
+    image, points, truth = two_boxes_scene(APERTURE)
+    result = estimate_dense(image, APERTURE, (-10.0, 10.0))
+    for name, (x, y) in points.items():
+        patch = result.disparity_px[y - 5 : y + 6, x - 5 : x + 6]
+        assert abs(float(np.median(patch)) - truth[name]) < 0.35, name
+    assert result.confidence.shape == result.disparity_px.shape
+    assert float(result.confidence.min()) >= 0.0 and float(result.confidence.max()) <= 1.0
