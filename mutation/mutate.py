@@ -93,7 +93,9 @@ def module_path(name: str) -> Path:
                 for path in (base.with_suffix(".py"), base):
                     if path.exists():
                         return path.relative_to(ROOT)
-    raise SystemExit(f"mutate: no module {name!r} (give a path such as capture/batch.py or a name such as mca.capture.batch)")
+    raise SystemExit(
+        f"mutate: no module {name!r} (give a path such as capture/batch.py or a name such as mca.capture.batch)"
+    )
 
 
 def expand(names: list[str]) -> list[Path]:
@@ -248,7 +250,9 @@ def mutant_diff(target: Path, source: str, operator_name: str, occurrence: int) 
     )
 
 
-def run_module(path: Path, config: dict, sample: int | None, resume: bool, tests_override: list[str] | None) -> ModuleReport:
+def run_module(
+    path: Path, config: dict, sample: int | None, resume: bool, tests_override: list[str] | None
+) -> ModuleReport:
     """Mutate one module and test every mutant; the report of what survived."""
     from cosmic_ray.commands.init import init
     from cosmic_ray.mutating import mutate_and_test
@@ -282,7 +286,9 @@ def run_module(path: Path, config: dict, sample: int | None, resume: bool, tests
         report.error = str(error)
         return report
     timeout_s = max(float(config.get("min_timeout_s", 30)), float(config.get("timeout_factor", 3.0)) * baseline_s)
-    _say(f"{path}: the unmutated tests pass in {baseline_s:.1f} s (under coverage); timeout per mutant {timeout_s:.0f} s")
+    _say(
+        f"{path}: the unmutated tests pass in {baseline_s:.1f} s (under coverage); timeout per mutant {timeout_s:.0f} s"
+    )
 
     if fresh:
         session.unlink(missing_ok=True)
@@ -416,9 +422,13 @@ def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="python3 dev.py mutate", description=__doc__.splitlines()[0])
     parser.add_argument("modules", nargs="*", help="paths or dotted names; default: every module in config.toml")
     parser.add_argument("--tests", nargs="+", help="test files to use instead of config.toml's")
-    parser.add_argument("--sample", type=int, help="test only N evenly spread mutants per module (the same N every run)")
+    parser.add_argument(
+        "--sample", type=int, help="test only N evenly spread mutants per module (the same N every run)"
+    )
     parser.add_argument("--jobs", type=int, default=1, help="modules mutated at once (each in its own copy)")
-    parser.add_argument("--resume", action="store_true", help="go on with an interrupted run whose inputs are unchanged")
+    parser.add_argument(
+        "--resume", action="store_true", help="go on with an interrupted run whose inputs are unchanged"
+    )
     parser.add_argument("--fail-under", type=float, help="exit 1 when a module scores below this percentage")
     parser.add_argument("--json", type=Path, help="also write the reports to this file")
     args = parser.parse_args(argv)

@@ -124,7 +124,9 @@ def test_the_free_functions_against_the_traced_geometry() -> None:
         assert isinstance(signed, float)
         assert signed == pytest.approx(u - FOCUS_MM, rel=1e-9, abs=1e-6)
         if dd >= 0:
-            assert optics.inter_object_depth_far_mm(dd, D_LS_MM, F_MM) == pytest.approx(u - FOCUS_MM, rel=1e-9, abs=1e-6)
+            assert optics.inter_object_depth_far_mm(dd, D_LS_MM, F_MM) == pytest.approx(
+                u - FOCUS_MM, rel=1e-9, abs=1e-6
+            )
         else:
             assert optics.inter_object_depth_near_mm(-dd, D_LS_MM, F_MM) == pytest.approx(
                 FOCUS_MM - u, rel=1e-9, abs=1e-6
@@ -182,13 +184,13 @@ def test_a_profile_given_its_focus_distance_puts_the_sensor_where_the_lens_equat
 
 def test_a_profile_without_lens_or_pitch_says_what_is_missing() -> None:
     profile = load_profile("bando2008")
-    with pytest.raises(ValueError, match="bando2008.*no \\[lens\\]"):
+    with pytest.raises(ValueError, match=r"bando2008.*no \[lens\]"):
         MCAOptics.from_profile(profile)
     paper = load_profile("paper-70d")
     from dataclasses import replace
 
     no_pitch = replace(paper, pixel_pitch_mm=None)
-    with pytest.raises(ValueError, match="paper-70d.*pixel_pitch_mm"):
+    with pytest.raises(ValueError, match=r"paper-70d.*pixel_pitch_mm"):
         MCAOptics.from_profile(no_pitch)
     assert MCAOptics.from_profile(no_pitch, pixel_pitch_mm=0.005).pixel_pitch_mm == 0.005
     with pytest.raises(ProfileError):
