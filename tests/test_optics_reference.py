@@ -196,3 +196,11 @@ def test_a_profile_without_lens_or_pitch_says_what_is_missing() -> None:
     with pytest.raises(ProfileError):
         load_profile_file("/nonexistent/profile.toml")
     assert math.isfinite(MCAOptics.from_profile(paper).focus_distance_mm)
+
+
+def test_bound_optics_cannot_be_changed_after_the_fact() -> None:
+    from dataclasses import FrozenInstanceError
+
+    bound = MCAOptics(F_MM, D_LS_MM, D_A_MM, PITCH_MM)
+    with pytest.raises(FrozenInstanceError):
+        bound.sensor_distance_mm = 60.0  # type: ignore[misc]
