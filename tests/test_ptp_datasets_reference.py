@@ -49,7 +49,7 @@ def test_device_info_fields_in_the_standard_order() -> None:
     assert info.supports(0x9116) and not info.supports(0x1009)
     assert ds.pack_device_info(info) == DEVICE_INFO
     for cut in (1, 5, 20, len(DEVICE_INFO) - 1):
-        with pytest.raises(ProtocolError, match="truncated|does not fit"):
+        with pytest.raises(ProtocolError, match=r"truncated|does not fit"):
             ds.parse_device_info(DEVICE_INFO[:cut])
 
 
@@ -101,9 +101,9 @@ def test_string_and_unknown_property_values() -> None:
     assert ds.pack_prop_value(0xFFFF, "Owner") == s("Owner")
     assert ds.parse_prop_value(s("Owner"), 0xFFFF) == "Owner"
     for bad in (0x0009, 0x000A, 0x4009, 0x0000):
-        with pytest.raises(ProtocolError, match="unknown (array )?datatype"):
+        with pytest.raises(ProtocolError, match=r"unknown (array )?datatype"):
             ds.parse_prop_value(b"\x00" * 16, bad)
-        with pytest.raises(ProtocolError, match="unknown (array )?datatype"):
+        with pytest.raises(ProtocolError, match=r"unknown (array )?datatype"):
             ds.pack_prop_value(bad, 1 if not bad & 0x4000 else (1,))
     with pytest.raises(ProtocolError, match="exceeds"):
         ds.parse_prop_value(bytes(MAX_DATASET_BYTES + 1), 0x0002)
