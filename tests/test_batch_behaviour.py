@@ -173,7 +173,7 @@ def test_batches_that_cannot_start_say_why(tmp_path: Path) -> None:
     with pytest.raises(BatchError, match=r"no such file or folder: .*nowhere; check the path"):
         run_batch([tmp_path / "nowhere"], tmp_path / "out", PROFILE)
     (tmp_path / "empty").mkdir()
-    with pytest.raises(BatchError, match="no input files found in .*empty; give files or folders holding"):
+    with pytest.raises(BatchError, match=r"no input files found in .*empty; give files or folders holding"):
         run_batch([tmp_path / "empty"], tmp_path / "out", PROFILE)
     with pytest.raises(BatchError, match="live recorder"):
         run_batch([tmp_path / "empty"], tmp_path / "out", PROFILE, workers=2, recorder=object())
