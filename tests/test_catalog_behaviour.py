@@ -246,7 +246,7 @@ def test_a_newer_or_damaged_catalog_is_refused_with_what_to_do(tmp_path: Path) -
     damaged = tmp_path / "damaged" / "catalog.sqlite"
     damaged.parent.mkdir()
     damaged.write_bytes(b"not a database" * 100)
-    with pytest.raises(CatalogError, match="cannot be opened as the catalog.*move it aside"):
+    with pytest.raises(CatalogError, match=r"cannot be opened as the catalog.*move it aside"):
         Catalog(damaged)
     assert isinstance(CatalogError("x"), sqlite3.DatabaseError)
 
@@ -283,7 +283,7 @@ def test_the_reserve_is_made_once_and_given_back_on_a_full_disk(tmp_path: Path) 
     assert catalog.get(shot).camera_filename == "A.CR2"
     catalog.db = FullOnce(catalog.db.db, 2)  # type: ignore[attr-defined]
     with pytest.raises(
-        CatalogError, match="cannot record the change .*free some space on its disk; shots stay on the camera"
+        CatalogError, match=r"cannot record the change .*free some space on its disk; shots stay on the camera"
     ):
         catalog.add_captured("SN", "B.CR2", 2, 5)
     catalog.db = catalog.db.db  # type: ignore[attr-defined]
