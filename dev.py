@@ -7,7 +7,7 @@
                                                 mutation testing (cosmic-ray): each module's score and its
                                                 surviving mutants; MODULE is a path (capture/batch.py,
                                                 processing/) or a name (mca.capture.batch); default: the
-                                                modules in mutation/config.toml (see docs/testing.md)
+                                                modules in mutation/config.toml (README, Quick start)
 
 Needs only Python >= 3.11 with pip. Creates `.venv` when missing, installs the
 project with its test and lint extras whenever pyproject.toml changed, and on
