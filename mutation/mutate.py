@@ -229,6 +229,66 @@ def load_equivalents(path: Path) -> list[dict[str, str]]:
     return [e for e in entries if e.get("module") == str(path)]
 
 
+def load_rules() -> dict[str, str]:
+    """Rules of equivalent.toml ([[rule]] name, reason) that apply to every module: name -> reason."""
+    rules = tomllib.loads(EQUIVALENT.read_text("utf-8")).get("rule", []) if EQUIVALENT.exists() else []
+    return {r["name"]: r["reason"] for r in rules}
+
+
+def annotation_spans(source: str) -> list[tuple[tuple[int, int], tuple[int, int]]]:
+    """(start, end) positions of every annotation, when the module postpones their evaluation (PEP 563)."""
+    import ast
+
+    tree = ast.parse(source)
+    postponed = any(
+        isinstance(node, ast.ImportFrom)
+        and node.module == "__future__"
+        and any(a.name == "annotations" for a in node.names)
+        for node in tree.body
+    )
+    if not postponed:
+        return []
+    found = []
+    for node in ast.walk(tree):
+        annotations = []
+        if isinstance(node, ast.arg | ast.AnnAssign) and node.annotation is not None:
+            annotations.append(node.annotation)
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef) and node.returns is not None:
+            annotations.append(node.returns)
+        for a in annotations:
+            found.append(((a.lineno, a.col_offset), (a.end_lineno or a.lineno, a.end_col_offset or 0)))
+    return found
+
+
+class Equivalence:
+    """Decides whether one mutant of a module is equivalent: listed in equivalent.toml, or caught by a rule."""
+
+    def __init__(self, path: Path, source: str) -> None:
+        self.entries = load_equivalents(path)
+        self.rules = load_rules()
+        self.lines = source.split("\n")
+        self.spans = annotation_spans(source) if "annotation" in self.rules else []
+
+    def reason(self, start_pos: tuple[int, int], operator: str, after: str | None) -> str | None:
+        """Why the mutant at `start_pos` (line, column) is equivalent, or None; `after` is its mutated line."""
+        row = start_pos[0]
+        if any(a <= tuple(start_pos) < b for a, b in self.spans):
+            return self.rules["annotation"]
+        text = self.lines[row - 1].strip()
+        for entry in self.entries:
+            if entry.get("line", "").strip() != text or entry.get("operator") not in (None, operator):
+                continue
+            if entry.get("mutant") is None or (after is not None and entry["mutant"].strip() == after):
+                return str(entry["reason"])
+        return None
+
+    def may_apply(self, start_pos: tuple[int, int], operator: str) -> bool:
+        """Whether `reason` could find something (so the mutant's diff is worth computing)."""
+        return self.reason(start_pos, operator, None) is not None or any(
+            e.get("line", "").strip() == self.lines[start_pos[0] - 1].strip() for e in self.entries
+        )
+
+
 def diff_lines(diff: str) -> tuple[str, str]:
     """(original line, mutated line) of a one-line cosmic-ray diff, stripped."""
     before = [line[1:].strip() for line in diff.splitlines() if line.startswith("-") and not line.startswith("---")]
@@ -296,7 +356,7 @@ def run_module(
         with use_db(str(session), WorkDB.Mode.create) as db:
             init([target], db, {})
             missing = uncovered_lines(target, executed)
-            equivalents = load_equivalents(path)
+            equivalence = Equivalence(path, source)
             items = sorted(
                 db.work_items,
                 key=lambda w: (w.mutations[0].start_pos, w.mutations[0].operator_name, w.mutations[0].occurrence),
@@ -308,30 +368,22 @@ def run_module(
             if sample is not None and sample < len(items):
                 step = len(items) / sample  # a fixed, evenly spread sample: the same mutants every run
                 chosen = {int(i * step) for i in range(sample)}
-            lines = source.split("\n")
             for index, item in enumerate(items):
                 mutation = item.mutations[0]
                 if index not in chosen:
                     db.set_result(item.job_id, WorkResult(worker_outcome=WorkerOutcome.SKIPPED, output="not sampled"))
                     continue
                 row = mutation.start_pos[0]
-                line_text = lines[row - 1].strip()
-                candidates = [e for e in equivalents if e.get("line", "").strip() == line_text]
-                candidates = [e for e in candidates if e.get("operator") in (None, mutation.operator_name)]
-                if candidates or row in missing:
+                candidate = equivalence.may_apply(tuple(mutation.start_pos), mutation.operator_name)
+                if candidate or row in missing:
                     diff = mutant_diff(target, source, mutation.operator_name, mutation.occurrence)
                     _, after = diff_lines(diff)
-                    for entry in candidates:
-                        if entry.get("mutant") is None or entry["mutant"].strip() == after:
-                            db.set_result(
-                                item.job_id,
-                                WorkResult(
-                                    worker_outcome=WorkerOutcome.SKIPPED,
-                                    output=f"equivalent: {entry['reason']}",
-                                    diff=diff,
-                                ),
-                            )
-                            break
+                    reason = equivalence.reason(tuple(mutation.start_pos), mutation.operator_name, after)
+                    if reason is not None:
+                        db.set_result(
+                            item.job_id,
+                            WorkResult(worker_outcome=WorkerOutcome.SKIPPED, output=f"equivalent: {reason}", diff=diff),
+                        )
                     else:
                         if row in missing:
                             db.set_result(
@@ -362,6 +414,9 @@ def run_module(
         finally:
             os.environ.clear()
             os.environ.update(saved_env)
+        # equivalence is decided again here, so that entries added to equivalent.toml after a run count
+        # without running it again (`--resume` on a finished run only reports)
+        equivalence = Equivalence(path, source)
         for item, result in db.completed_work_items:
             mutation = item.mutations[0]
             output = result.output or ""
@@ -372,7 +427,10 @@ def run_module(
             if result.worker_outcome == WorkerOutcome.NO_TEST:
                 continue  # cosmic-ray found nothing to change at that position
             report.total += 1
-            if output.startswith("equivalent:"):
+            _, after = diff_lines(result.diff or "")
+            if output.startswith("equivalent:") or equivalence.reason(
+                tuple(mutation.start_pos), mutation.operator_name, after
+            ):
                 report.equivalent += 1
             elif result.test_outcome == TestOutcome.SURVIVED:
                 before, after = diff_lines(result.diff or "")
