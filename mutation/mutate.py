@@ -336,19 +336,26 @@ def run_module(
         "\0".join([source, *tests, *[(ROOT / t).read_text("utf-8") for t in tests], CONFIG.read_text("utf-8")]).encode()
     ).hexdigest()
     fresh = not (resume and session.exists() and stamp_file.exists() and stamp_file.read_text() == stamp)
+    finished = False
+    if not fresh:
+        with use_db(str(session), WorkDB.Mode.open) as db:
+            finished = not any(True for _ in db.pending_work_items)
     src = make_copy(work)
     target = src / Path(*import_name(path).split(".")).with_suffix(".py")
     env = test_env(src, work)
     _say(f"{path}: {len(tests)} test files: {' '.join(tests)}")
-    try:
-        baseline_s, executed = baseline(tests, src, target, work, env)
-    except RuntimeError as error:
-        report.error = str(error)
-        return report
-    timeout_s = max(float(config.get("min_timeout_s", 30)), float(config.get("timeout_factor", 3.0)) * baseline_s)
-    _say(
-        f"{path}: the unmutated tests pass in {baseline_s:.1f} s (under coverage); timeout per mutant {timeout_s:.0f} s"
-    )
+    timeout_s = 0.0
+    if not finished:  # a finished run that is resumed is only reported again
+        try:
+            baseline_s, executed = baseline(tests, src, target, work, env)
+        except RuntimeError as error:
+            report.error = str(error)
+            return report
+        timeout_s = max(float(config.get("min_timeout_s", 30)), float(config.get("timeout_factor", 3.0)) * baseline_s)
+        _say(
+            f"{path}: the unmutated tests pass in {baseline_s:.1f} s (under coverage); "
+            f"timeout per mutant {timeout_s:.0f} s"
+        )
 
     if fresh:
         session.unlink(missing_ok=True)
