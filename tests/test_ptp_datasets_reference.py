@@ -8,7 +8,7 @@ from __future__ import annotations
 import struct
 
 import pytest
-from hypothesis import given
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from mca.devices.ptp import datasets as ds
@@ -236,6 +236,7 @@ def test_eos_folder_listing() -> None:
 names = st.text(alphabet=st.characters(min_codepoint=32, max_codepoint=0x7FF), max_size=30)
 
 
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     st.builds(
         ds.ObjectInfo,
@@ -252,3 +253,36 @@ names = st.text(alphabet=st.characters(min_codepoint=32, max_codepoint=0x7FF), m
 )
 def test_object_info_round_trips(info: ds.ObjectInfo) -> None:
     assert ds.parse_object_info(ds.pack_object_info(info)) == info
+
+
+def test_default_datasets_mean_what_the_standard_says() -> None:
+    # DeviceInfo(): PTP 1.00 (100), no vendor extension, no lists, empty strings
+    assert (
+        ds.pack_device_info(ds.DeviceInfo())
+        == struct.pack("<HIH", 100, 0, 0)
+        + b"\x00"
+        + struct.pack("<H", 0)
+        + struct.pack("<5I", 0, 0, 0, 0, 0)
+        + b"\x00" * 4
+    )
+    # StorageInfo(): removable RAM (4), generic hierarchical (2), read-write (0), free images unused (0xFFFFFFFF)
+    assert ds.pack_storage_info(ds.StorageInfo()) == struct.pack("<HHHQQI", 4, 2, 0, 0, 0, 0xFFFFFFFF) + b"\x00\x00"
+    # ObjectInfo(): every number 0, every string empty
+    assert ds.pack_object_info(ds.ObjectInfo()) == bytes(52) + b"\x00" * 4
+    desc = ds.DevicePropDesc(0x5001, 0x0002, False, 1, 2)
+    assert (desc.form, desc.range_min, desc.range_max, desc.range_step, desc.allowed) == ("none", 0, 0, 0, ())
+
+
+def test_datasets_are_values_that_cannot_change() -> None:
+    from dataclasses import FrozenInstanceError
+
+    for value in (ds.DeviceInfo(), ds.StorageInfo(), ds.ObjectInfo(), ds.EosDeviceInfoEx(),
+                  ds.EosFolderEntry(1, 2, 3, 0, 5, "A", 6), ds.DevicePropDesc(1, 2, False, 0, 0)):  # fmt: skip
+        field = next(iter(value.__dataclass_fields__))
+        with pytest.raises(FrozenInstanceError):
+            setattr(value, field, 1)
+        hash(value)
+
+
+def test_the_dataset_limit_is_inclusive() -> None:
+    assert ds.parse_storage_ids(bytes(MAX_DATASET_BYTES)) == ()
