@@ -204,3 +204,6 @@ def test_bound_optics_cannot_be_changed_after_the_fact() -> None:
     bound = MCAOptics(F_MM, D_LS_MM, D_A_MM, PITCH_MM)
     with pytest.raises(FrozenInstanceError):
         bound.sensor_distance_mm = 60.0  # type: ignore[misc]
+    region = region_depth(2.0, bound)
+    with pytest.raises(FrozenInstanceError):
+        region.distance_mm = 1.0  # type: ignore[misc]
