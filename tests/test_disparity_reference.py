@@ -295,3 +295,58 @@ def test_green_moves_vertically_and_its_sign_matters() -> None:
     np.testing.assert_allclose(g, r, atol=6.0)
     apart = dsp.warp_channels(planes, APERTURE, np.full((200, 60), -3.0, np.float32), cv2.INTER_CUBIC)[15:-15, 15:-15]
     assert float(np.abs((apart[..., 1] - 0.3) / 0.6 - (apart[..., 0] - 0.1)).max()) > 30.0
+
+
+def test_defaults_are_the_documented_ones() -> None:
+    params = dsp.DisparityParams()
+    assert (params.window_px, params.step_px, params.noise_floor, params.aggregation_px, params.subpixel) == (
+        9,
+        0.5,
+        2e-3,
+        0,
+        True,
+    )
+    base = texture(60, 40, seed=20)
+    planes = np.stack([base, base * 0.5, base + 0.2], axis=-1).astype(np.float32)
+    d = np.random.default_rng(21).uniform(-2, 2, (60, 40)).astype(np.float32)
+    # without origin_xy: the map covers the planes from their top-left corner
+    np.testing.assert_array_equal(
+        dsp.warp_channels(planes, APERTURE, d), dsp.warp_channels(planes, APERTURE, d, origin_xy=(0, 0))
+    )
+    cost = dsp.AlignmentCost(planes, APERTURE, 9, 1e-3)
+    np.testing.assert_array_equal(cost.per_pixel(d), cost.per_pixel(d, origin_xy=(0, 0)))
+
+
+def test_texture_is_never_negative_even_where_rounding_cancels() -> None:
+    rng = np.random.default_rng(0)
+    band = (1000 + rng.random((40, 40, 3)) * 1e-3).astype(np.float32)  # float32 var = E[x^2] - E[x]^2 cancels
+    assert float(dsp.AlignmentCost(band, APERTURE, 9, 1e-3).texture().min()) >= 0.0
+
+
+def test_the_three_correlation_form_is_the_determinant() -> None:
+    rng = np.random.default_rng(22)
+    rg, rb, gb = (rng.uniform(-0.9, 0.9, 50) for _ in range(3))
+    expected = [
+        np.clip(np.linalg.det(np.array([[1, a, b], [a, 1, c], [b, c, 1]])), 0, 1) for a, b, c in zip(rg, rb, gb)
+    ]
+    np.testing.assert_allclose(dsp._colour_line(rg.copy(), rb.copy(), gb.copy()), expected, atol=1e-12)
+
+
+def test_the_winning_cost_is_the_minimum_over_candidates_with_the_default_window() -> None:
+    base = texture(60, 50, seed=23, sigma=1.2) * 500.0 + 50.0
+    planes = mca_planes(base, 1.3)
+    band = dsp.band_pass(planes)
+    result = dsp.estimate_disparity(planes, APERTURE, (-2.0, 2.0), dsp.DisparityParams(subpixel=False), band=band)
+    nine = dsp.AlignmentCost(band, APERTURE, 9, 2e-3)
+    volume = np.stack([nine.uniform(d) for d in result.candidates_px])
+    np.testing.assert_allclose(result.cost, volume.min(axis=0), atol=1e-5)
+    np.testing.assert_array_equal(result.disparity_px, result.candidates_px[volume.argmin(axis=0)].astype(np.float32))
+
+
+def test_the_last_but_one_candidate_still_gets_its_sub_pixel_offset() -> None:
+    base = texture(200, 60, seed=24, sigma=1.2) * 500.0 + 50.0
+    planes = mca_planes(base, 2.6)  # between the candidates 2.5 and 3.0, the last one
+    result = dsp.estimate_disparity(planes, APERTURE, (-2.0, 3.0))
+    inner = result.disparity_px[20:-20, 15:-15]
+    assert float(np.median(inner)) == pytest.approx(2.6, abs=0.06)
+    assert float(np.mean(inner == 2.5)) < 0.5  # not snapped to the candidate as at the range's edge
