@@ -67,6 +67,8 @@ def test_the_400d_object_added_record_decodes_to_what_libgphoto2_printed() -> No
     for start, end in ((0, 18), (28, 36), (40, 53)):
         assert ours[start:end] == payload[start:end], (start, end)
     assert len(ours) == 0x3C == struct.unpack_from("<I", payload)[0]
+    assert payload[ev.OBJECT_ADDED_NAME_OFFSET :].startswith(b"IMG_1589.JPG\x00")
+    assert ours[ev.OBJECT_ADDED_NAME_OFFSET :].startswith(b"IMG_1589.JPG\x00")
 
 
 @needs_traces
@@ -115,6 +117,19 @@ def test_focus_info_bounds() -> None:
     ev.parse_focus_info_ex(struct.pack("<IHHHHHHHH", 45, 41, 4, 3, 3, 0, 0, 0, 0) + bytes(25))
     with pytest.raises(ProtocolError, match="does not fit 44 bytes"):
         ev.parse_focus_info_ex(struct.pack("<IHHHHHHHH", 44, 40, 4, 3, 3, 0, 0, 0, 0) + bytes(24))
+    # one point: 20 + 8 + one mask byte
+    ev.parse_focus_info_ex(struct.pack("<IHHHHHHHH", 29, 25, 4, 1, 1, 0, 0, 0, 0) + bytes(9))
+    with pytest.raises(ProtocolError, match="with 1 points does not fit 28 bytes"):
+        ev.parse_focus_info_ex(struct.pack("<IHHHHHHHH", 28, 24, 4, 1, 1, 0, 0, 0, 0) + bytes(8))
+    # eight points: one mask byte; point 7 is its top bit, point 8 the first bit of the next byte
+    eight = [(i, -i, 10 + i, 20 + i) for i in range(8)]
+    assert len(ev.pack_focus_info_ex(eight, {7}, (100, 80))) == 20 + 8 * 8 + 1
+    assert ev.pack_focus_info_ex(eight, {7}, (100, 80))[-1] == 0x80
+    nine = [*eight, (8, -8, 18, 28)]
+    packed = ev.pack_focus_info_ex(nine, {7, 8}, (100, 80))
+    assert packed[-2:] == b"\x80\x01"
+    focused = ev.parse_focus_info_ex(packed)
+    assert focused is not None and focused.in_focus == ((7, -7, 17, 27), (8, -8, 18, 28))
 
 
 def test_request_object_transfer_record() -> None:
@@ -122,7 +137,7 @@ def test_request_object_transfer_record() -> None:
     body = struct.pack("<IIIII", 0x90000001, 0x0000B103, 0, 25_000_000, 0) + b"IMG_0042.CR2\x00\x00\x00\x00"
     (got,) = ev.parse_eos_events(record(0xC186, body) + END)
     assert got == ev.EosRequestObjectTransfer(0x90000001, 0xB103, 25_000_000, "IMG_0042.CR2")
-    assert record(0xC186, body)[0x1C:0x28] == b"IMG_0042.CR2"
+    assert record(0xC186, body)[ev.REQUEST_TRANSFER_NAME_OFFSET :].startswith(b"IMG_0042.CR2\x00")
     upper = struct.pack("<IIIII", 1, 0x1234B103, 0, 5, 0) + b"A\x00"
     assert ev.parse_eos_events(record(0xC186, upper))[0].object_format == 0xB103  # the low 16 bits
     assert ev.pack_eos_event(got) == record(0xC186, body)
@@ -218,8 +233,8 @@ def test_broken_framing_keeps_what_came_before() -> None:
     assert broken.body == b"\x01\x02\x03"
     (kept, short) = ev.parse_eos_events(first + struct.pack("<II", 7, 0xC182) + b"zz")
     assert "claims 7 bytes, less than 8" in short.reason and short.code == 0xC182 and short.body == b"zz"
-    (kept, long) = ev.parse_eos_events(first + struct.pack("<II", 40, 0xC182) + b"zz")
-    assert "claims 40 bytes, 10 left" in long.reason and long.body == b"zz"
+    (kept, long) = ev.parse_eos_events(first + struct.pack("<II", 20, 0xC182) + b"zz")
+    assert "claims 20 bytes, 10 left" in long.reason and long.body == b"zz"
     # exactly fitting is fine; a record whose body is too short for its code is undecoded, the next read
     got = ev.parse_eos_events(record(0xC182, b"\x01\x00") + record(0xC18B, struct.pack("<I", 1)))
     assert isinstance(got[0], ev.EosUndecodedRecord) and got[0].code == 0xC182 and got[0].body == b"\x01\x00"
@@ -254,3 +269,23 @@ def test_object_added_names_are_cut_to_the_field_and_round_trip() -> None:
         ev.pack_eos_event("not an event")  # type: ignore[arg-type]
     undecoded = ev.EosUndecodedRecord(0xC1AA, b"\x01\x02", "why")
     assert ev.pack_eos_event(undecoded) == record(0xC1AA, b"\x01\x02")
+
+
+def test_image_format_types_and_frozen_records() -> None:
+    from dataclasses import FrozenInstanceError
+
+    # ImageFormat file types as libgphoto2's EOS decoder names them: 1 JPEG, 6 CR2
+    assert (ev.IMAGE_TYPE_JPEG, ev.IMAGE_TYPE_RAW) == (1, 6)
+    for value in (
+        ev.EosObjectAdded(1, 2, 3, 4, 5, "A"),
+        ev.EosRequestObjectTransfer(1, 2, 3, "A"),
+        ev.EosObjectRemoved(1),
+        ev.EosPropValueChanged(1, 2),
+        ev.EosAvailListChanged(1, 3, ()),
+        ev.EosCameraStatus(1),
+        ev.EosUnknownEvent(1, b""),
+        ev.EosUndecodedRecord(1, b""),
+    ):
+        field = next(iter(value.__dataclass_fields__))
+        with pytest.raises(FrozenInstanceError):
+            setattr(value, field, 9)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import socket
 import struct
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -394,6 +395,7 @@ def test_events_are_queued_and_pings_on_the_event_connection_answered() -> None:
             got_pong.set()
         evt.sendall(packet(8, struct.pack("<HII", 0x4002, 0, 0x1234)))
         evt.sendall(packet(8, struct.pack("<HI4I", 0x4002, 0, 1, 2, 3, 4)))  # malformed: skipped
+        time.sleep(1.2)  # a quiet event connection (longer than the reader's 0.5 s timeout) is not a lost one
         evt.sendall(packet(8, struct.pack("<HI", 0x400D, 0)))
         cam.done.wait(3)
 
@@ -416,8 +418,6 @@ def test_old_events_are_dropped_beyond_the_queue() -> None:
         cam.done.wait(3)
 
     def then(t):
-        import time
-
         deadline = time.monotonic() + 5
         while len(t._events) < ip.MAX_QUEUED_EVENTS and time.monotonic() < deadline:
             time.sleep(0.05)
@@ -426,3 +426,51 @@ def test_old_events_are_dropped_beyond_the_queue() -> None:
 
     first, _, _ = run(script, then=then)
     assert first.params == (10,)
+
+
+def test_the_standard_port_and_the_default_data_limit() -> None:
+    assert ip.DEFAULT_PORT == 15740  # CIPA DC-005
+    assert (ip.INIT_COMMAND_REQUEST, ip.INIT_COMMAND_ACK, ip.INIT_EVENT_REQUEST, ip.INIT_EVENT_ACK, ip.INIT_FAIL) == (
+        1,
+        2,
+        3,
+        4,
+        5,
+    )
+    assert (ip.OPERATION_REQUEST, ip.START_DATA, ip.END_DATA, ip.PING, ip.PONG) == (6, 9, 12, 13, 14)
+    request = ip.InitCommandRequest(GUID, "x", 1)
+    from dataclasses import FrozenInstanceError
+
+    with pytest.raises(FrozenInstanceError):
+        request.name = "y"  # type: ignore[misc]
+
+    def script(cmd, evt, cam):
+        recv_packet(cmd)
+        cmd.sendall(start_data(5, 64 * 1024 * 1024 + 1))
+
+    def then(t):
+        with pytest.raises(ProtocolError, match="announced 67108865 data bytes, more than the 67108864 expected"):
+            t.transaction(0x1009, 5)
+
+    run(script, then=then)
+
+
+def test_a_control_packet_of_64_kib_is_accepted_and_a_larger_one_refused() -> None:
+    body = b"\x01\x20" + struct.pack("<I", 5) + bytes(64 * 1024 - 6)
+
+    def script(cmd, evt, cam):
+        recv_packet(cmd)
+        cmd.sendall(packet(7, body[:6]))  # an ordinary response first
+
+    run(script, then=lambda t: t.transaction(0x1001, 5))
+    a, b = socket.socketpair()
+    try:
+        conn = ip._Conn(a, "test")
+        b.sendall(packet(7, body))
+        assert conn.recv_packet() == (7, body)
+        b.sendall(packet(7, body + b"x"))
+        with pytest.raises(ProtocolError, match="exceeds the 65536-byte limit"):
+            conn.recv_packet()
+    finally:
+        a.close()
+        b.close()
