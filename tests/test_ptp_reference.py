@@ -249,3 +249,13 @@ def test_scalar_helpers() -> None:
     assert codec.u16(0x1234) == b"\x34\x12"
     assert codec.u32(0x12345678) == b"\x78\x56\x34\x12"
     assert codec.u64(1) == b"\x01" + b"\x00" * 7
+
+
+def test_the_dataset_limit_is_16_mib() -> None:
+    """What a peer may make the host hold in memory for one dataset (DeviceInfo, an event list, ...)."""
+    from mca.devices.ptp.datasets import parse_storage_ids
+
+    assert codec.MAX_DATASET_BYTES == 16 * 1024 * 1024
+    assert parse_storage_ids(bytes(16 * 1024 * 1024)) == ()
+    with pytest.raises(ProtocolError, match="16777217 bytes exceeds the 16777216-byte limit"):
+        parse_storage_ids(bytes(16 * 1024 * 1024 + 1))
