@@ -297,3 +297,27 @@ def test_the_reserve_is_made_once_and_given_back_on_a_full_disk(tmp_path: Path) 
         other.mark_failed(1, "x")
     os.remove(reserve)
     other.close()
+
+
+def test_the_reserve_is_an_ordinary_file_and_a_full_disk_leaves_none(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import errno
+    import stat
+
+    umask = os.umask(0o022)
+    try:
+        Catalog(tmp_path / "a.sqlite").close()
+    finally:
+        os.umask(umask)
+    assert stat.S_IMODE((tmp_path / "a.sqlite-reserve").stat().st_mode) == 0o644
+
+    def no_space(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "posix_fallocate", no_space)
+    monkeypatch.setattr(os, "write", no_space)
+    (tmp_path / "full").mkdir()
+    with Catalog(tmp_path / "full" / "b.sqlite") as catalog:
+        assert catalog.add_captured("SN", "A.CR2", 1, 1) == 1  # the catalog works without its reserve
+    assert not (tmp_path / "full" / "b.sqlite-reserve").exists()
