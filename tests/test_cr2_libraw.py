@@ -69,6 +69,7 @@ def test_huffman_lengths_are_limited_to_16_bits_for_a_fibonacci_distribution() -
         fib.append(fib[-1] + fib[-2])
     freq = np.array(fib, dtype=np.int64)
     lengths = cr2._huffman_code_lengths(freq)
+    assert set(lengths) == set(range(17))  # every symbol keeps a code
     assert max(lengths.values()) == 16
     assert sum(2.0**-length for length in lengths.values()) < 1.0
     assert lengths[16] == min(lengths.values())
@@ -234,3 +235,54 @@ def test_writing_is_atomic_and_the_bytes_are_cr2_bytes(tmp_path: Path) -> None:
     assert len(without) < len(path.read_bytes())
     with rawpy.imread(io.BytesIO(without)) as raw:
         assert np.array_equal(raw.raw_image_visible, mosaic)
+
+
+def test_the_tiff_structure_read_by_tifffile(tmp_path: Path) -> None:
+    """tifffile (an independent TIFF reader) finds every IFD, tag and image where TIFF/Exif put them."""
+    import tifffile
+
+    mosaic = np.random.default_rng(5).integers(BLACK, 9000, size=(200, 120), dtype=np.uint16)  # portrait
+    when = datetime(2024, 5, 1, 10, 15, 2)
+    meta = Cr2Metadata(iso=800, exposure_time_s=1 / 60, f_number=4.0, focal_length_mm=35.0, capture_time=when,
+                       lens_model="EF35mm", serial_number="123456", focus_distance_m=1.25)  # fmt: skip
+    path = write_cr2(tmp_path / "t.CR2", mosaic, black_level=BLACK, white_level=WHITE, metadata=meta)
+    with tifffile.TiffFile(path) as tif:
+        pages = tif.pages
+        assert len(pages) == 4
+        ifd0 = pages[0].tags
+        assert ifd0["Make"].value == "Canon" and ifd0["Model"].value == "Canon EOS 70D"
+        assert ifd0["DateTime"].value == "2024:05:01 10:15:02"
+        assert ifd0["Orientation"].value == 1
+        exif = ifd0["ExifTag"].value
+        assert exif["ExposureTime"] == (1, 60) and exif["FNumber"] == (4, 1) and exif["FocalLength"] == (35, 1)
+        assert exif["ISOSpeedRatings"] == 800
+        assert exif["DateTimeOriginal"] == exif["DateTimeDigitized"] == "2024:05:01 10:15:02"
+        assert exif["LensModel"] == "EF35mm" and exif["BodySerialNumber"] == "123456"
+        assert exif["SubjectDistance"] == (5, 4)
+        # IFD0: the preview JPEG, with its own size; IFD1 the thumbnail; IFD2 a small 8-bit RGB image
+        at, length = np.ravel(ifd0["StripOffsets"].value)[0], np.ravel(ifd0["StripByteCounts"].value)[0]
+        preview = Image.open(io.BytesIO(path.read_bytes()[int(at) : int(at + length)]))
+        assert (ifd0["ImageWidth"].value, ifd0["ImageLength"].value) == preview.size == (60, 100)
+        ifd1 = pages[1].tags
+        thumb_at = int(np.ravel(ifd1["JPEGInterchangeFormat"].value)[0])
+        thumb_len = int(np.ravel(ifd1["JPEGInterchangeFormatLength"].value)[0])
+        thumb = Image.open(io.BytesIO(path.read_bytes()[thumb_at : thumb_at + thumb_len]))
+        assert thumb.size == (60, 100)  # at most 160 wide: the preview itself
+        small = pages[2].asarray()
+        assert small.shape == (25, 15, 3) and small.dtype == np.uint8
+        ifd3 = pages[3].tags
+        assert ifd3["Compression"].value == 6
+        width = cr2.raw_frame_geometry(200, 120)[0]
+        assert tuple(ifd3[50752].value) == (1, (width // 2) & ~1, width - ((width // 2) & ~1))  # cr2_slice
+
+
+def test_the_default_metadata_is_written_and_read_back(tmp_path: Path) -> None:
+    from mca.capture.raw import read_raw
+
+    mosaic = np.random.default_rng(6).integers(BLACK, 9000, size=(64, 96), dtype=np.uint16)
+    meta = read_raw(write_cr2(tmp_path / "d.CR2", mosaic, metadata=Cr2Metadata())).metadata
+    assert (meta.make, meta.model, meta.lens_model) == ("Canon", "Canon EOS 70D", "EF50mm f/1.8 STM")
+    assert (meta.iso, meta.f_number, meta.focal_length_mm) == (100, 8.0, 50.0)
+    assert meta.exposure_time_s == pytest.approx(1 / 125)
+    assert meta.capture_time == datetime(2024, 1, 1, 12, 0, 0)
+    assert meta.focus_distance_m is None
