@@ -474,3 +474,23 @@ def test_a_control_packet_of_64_kib_is_accepted_and_a_larger_one_refused() -> No
     finally:
         a.close()
         b.close()
+
+
+def test_a_late_data_phase_is_handed_on_whole_up_to_4_mib_with_its_operation_code() -> None:
+    stale: list[tuple[int, int, int]] = []
+    big = bytes(range(256)) * (14 * 1024)  # 3.5 MiB
+
+    def script(cmd, evt, cam):
+        recv_packet(cmd)
+        cmd.sendall(start_data(3, 5) + data(3, b"small") + response(0x2001, 3))  # an operation we do not know
+        cmd.sendall(start_data(4, len(big)) + data(4, big, end=False) + data(4, b"") + response(0x2001, 4))
+        cmd.sendall(response(0x2001, 5))
+
+    def then(t):
+        t.on_stale_data = lambda code, tid, payload: stale.append((code, tid, len(payload)))
+        t._codes[4] = 0x1009
+        return t.transaction(0x1001, 5)
+
+    result, _, _ = run(script, then=then)
+    assert result.code == 0x2001
+    assert stale == [(0, 3, 5), (0x1009, 4, len(big))]
