@@ -1,17 +1,16 @@
-"""Render the README's figures: the pipeline's disparity and regions for the four Bando et al. photographs.
+"""Render the README's figure: our regions and dense disparity beside Bando et al.'s own output, per photograph.
 
-    .venv/bin/python docs/make_figures.py [--data ../shared/data/bando2008]
+    .venv/bin/python docs/make_figures.py [--data ../shared/data/bando2008] [--bando PATH]
 
 The photographs themselves stay out of the repository (their licence is non-commercial); the
-figures show only what the appliance computed from them: the per-region disparity in false
+figures show only what was computed from them: per row, our regions (each painted with its
+disparity), our dense disparity and Bando 2008's graph-cut disparity (when its program is built), in false
 colour (widest filter pair, pixels; blue = near, red = far) with the region boundaries in white.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import tempfile
 from pathlib import Path
 
 import cv2
@@ -19,7 +18,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_DATA = HERE.parents[1] / "shared" / "data" / "bando2008"
-RANGE_PX = (-4.0, 16.0)
+RANGE_PX = (-4.0, 20.0)
 
 
 def render(disparity_px: np.ndarray, labels: np.ndarray, title: str) -> np.ndarray:
@@ -54,39 +53,50 @@ def colour_bar(width: int) -> np.ndarray:
     return strip
 
 
+def region_image(result) -> np.ndarray:
+    """Each region painted with its own disparity: the 2.1D sketch as a picture."""
+    level = np.zeros(int(result.labels.max()) + 1, np.float32)
+    for region in result.regions:
+        level[region.id] = region.disparity_px
+    return level[result.labels]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--out", type=Path, default=HERE / "figures")
+    parser.add_argument("--bando", type=Path, default=None, help="Bando 2008's built program (else MCA_BANDO_BIN)")
     args = parser.parse_args()
 
-    import tifffile
-
-    from mca.capture.pipeline_app import process_file
+    from mca.capture.peer_bando import find_bando, run_bando
     from mca.capture.profiles import load_profile
+    from mca.processing.colour import srgb_decode
+    from mca.processing.pipeline import run_pipeline
 
     profile = load_profile("bando2008")
+    binary = find_bando(args.bando)
     args.out.mkdir(parents=True, exist_ok=True)
-    tiles = []
-    with tempfile.TemporaryDirectory() as work:
-        for name in ("dog", "bonsai", "chair", "sheep"):
-            outcome = process_file(args.data / f"{name}.png", work, profile)
-            if outcome.status != "done":
-                raise SystemExit(f"{name}: {outcome.reason}")
-            folder = Path(outcome.output_dir)
-            disparity = tifffile.imread(folder / "disparity.tiff")
-            labels = cv2.imread(str(folder / "regions.png"), cv2.IMREAD_UNCHANGED)
-            result = json.loads((folder / "result.json").read_text())
-            title = f"{name}: {len(result['regions'])} regions, {sum(result['timings_s'].get(k, 0) for k in ('pipeline',)):.1f} s"
-            tile = render(disparity, labels, title)
-            tiles.append(
-                cv2.resize(tile, (480, int(480 * tile.shape[0] / tile.shape[1])), interpolation=cv2.INTER_AREA)
-            )
-            print(title)
-    height = max(t.shape[0] for t in tiles)
-    tiles = [np.pad(t, ((0, height - t.shape[0]), (0, 0), (0, 0))) for t in tiles]
-    grid = np.vstack([np.hstack(tiles[:2]), np.hstack(tiles[2:])])
-    grid = np.vstack([grid, colour_bar(grid.shape[1])])
+    rows = []
+    for name in ("dog", "bonsai", "chair", "sheep"):
+        image = cv2.imread(str(args.data / f"{name}.png"), cv2.IMREAD_COLOR)
+        if image is None:
+            raise SystemExit(f"{args.data / name}.png: not found or not an image (pass --data)")
+        planes = srgb_decode(image[..., ::-1].astype(np.float32) / 255.0)
+        result = run_pipeline(planes, profile.aperture, None)
+        seconds = result.timings_s["total"]
+        tiles = [
+            render(region_image(result), result.labels, f"{name}: ours, {len(result.regions)} regions"),
+            render(result.disparity_px, result.labels * 0, f"ours: dense disparity, {seconds:.1f} s"),
+        ]
+        if binary is not None:
+            run = run_bando(binary, planes, profile.aperture, (-10.0, 20.0))
+            tiles.append(render(run.disparity_px, np.zeros_like(result.labels), f"Bando 2008, {run.seconds:.1f} s"))
+        row = np.hstack([cv2.resize(t, (360, int(360 * t.shape[0] / t.shape[1])), interpolation=cv2.INTER_AREA) for t in tiles])
+        rows.append(row)
+        print(f"{name}: {len(result.regions)} regions, {seconds:.1f} s" + ("" if binary else " (Bando's program not found)"))
+    width = max(r.shape[1] for r in rows)
+    rows = [np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0))) for r in rows]
+    grid = np.vstack([*rows, colour_bar(width)])
     path = args.out / "bando2008.png"
     cv2.imwrite(str(path), grid, [cv2.IMWRITE_PNG_COMPRESSION, 9])
     print(f"wrote {path}")

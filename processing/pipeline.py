@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from mca.processing.boundaries import BoundaryParams, snap_boundaries
 from mca.processing.camera import FilterAperture
 from mca.processing.cost import stack_bands
 from mca.processing.dense import DenseDisparity, DenseParams, estimate_dense
@@ -67,6 +68,22 @@ class PipelineParams:
     sketch: SketchParams = field(default_factory=SketchParams)
     evidence: str = "texture"  # what weighs a pixel's dense disparity in the surfaces: "texture", "confidence", "none"
     refine: RefineParams | None = field(default_factory=RefineParams)  # None: the surfaces' disparity as it is
+    boundaries: BoundaryParams | None = field(default_factory=BoundaryParams)  # None: superpixel outlines as they are
+
+    @classmethod
+    def for_quality(cls, quality: str) -> PipelineParams:
+        """`full` (the defaults, as evaluated) or `preview` (live use: a coarser analysis grid and superpixels,
+        a coarser refinement, no boundary snap; accuracy beside the full setting in docs/evaluation.md)."""
+        if quality == "full":
+            return cls()
+        if quality == "preview":
+            return cls(
+                analysis_max_side_px=640,
+                surfaces=SurfaceParams(superpixel_px=400, sweeps=5),
+                refine=RefineParams(coarse_step_px=0.75, fine_step_px=0.25),
+                boundaries=None,
+            )
+        raise ValueError(f"quality must be 'full' or 'preview', not {quality!r}")
 
 
 @dataclass
@@ -253,10 +270,27 @@ def run_pipeline(
             offset_px=refinement.offsets_px,
         )
 
+    with timer.stage("boundaries"):
+        region_labels = sketch.labels
+        if params.boundaries is not None:
+            region_labels = snap_boundaries(
+                small, aperture, sketch.labels, _region_models(sketch, refinement.disparity_px), params.boundaries
+            )
+        recorder.record("boundaries", labels=region_labels, changed_px=int((region_labels != sketch.labels).sum()))
+
     with timer.stage("depth"):
         superpixels_full = _upsample_labels(surfaces.labels, factor, (height, width))
         labels16 = sketch.superpixel_region[superpixels_full].astype(np.uint16)
         model_proc = _model_at_processing(surfaces, sketch, refinement, superpixels_full, labels16, factor)
+        if region_labels is not sketch.labels:
+            snapped = _upsample_labels(region_labels, factor, (height, width)).astype(np.uint16)
+            moved = snapped != labels16
+            if moved.any():
+                plane_of = np.zeros((int(snapped.max()) + 1, 3))
+                for r in sketch.regions:
+                    plane_of[r.id] = rescale_plane(r.plane, factor) if factor > 1 else r.plane
+                model_proc[moved] = plane_map(snapped.astype(np.int32), plane_of)[moved]
+            labels16 = snapped
         model_in = model_proc * np.float32(pixel_scale)
         depth = depth_map_mm(model_in, optics) if optics is not None else None
         raw_in = _upsample(dense.disparity_px, (height, width)) * np.float32(to_input)
@@ -295,6 +329,18 @@ def run_pipeline(
         pixel_scale=pixel_scale,
         timings_s=timer.timings,
     )
+
+
+def _region_models(sketch: Sketch, refined: np.ndarray) -> dict[int, np.ndarray]:
+    """Each region's disparity over the whole grid: its refined model inside, its plane outside."""
+    h, w = sketch.labels.shape
+    xs = np.arange(w, dtype=np.float32)[None, :]
+    ys = np.arange(h, dtype=np.float32)[:, None]
+    models = {}
+    for r in sketch.regions:
+        a, b, c = (np.float32(v) for v in r.plane)
+        models[r.id] = np.where(sketch.labels == r.id, refined, a * xs + b * ys + c).astype(np.float32)
+    return models
 
 
 def _evidence(planes: np.ndarray, dense: DenseDisparity, kind: str) -> np.ndarray | None:

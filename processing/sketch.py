@@ -24,6 +24,7 @@ class SketchParams:
 
     continuity_px: float = 0.6  # neighbouring regions whose planes meet within this (mean over the boundary) join
     colour_distance: float = 0.35  # ... when their mean display colours are at most this far apart
+    same_depth_px: float = 0.0  # then regions whose planes meet within this join whatever their colours (0: off)
     min_region_fraction: float = 0.002  # smaller regions join a neighbour
     sliver_fraction: float = 0.01  # a region smaller than this ...
     sliver_width_px: float = 12.0  # ... and on average thinner (2 area / boundary) is a rim sliver
@@ -146,6 +147,8 @@ def _merge_continuous(surfaces: Surfaces, abs_gaps: np.ndarray, params: SketchPa
                 heapq.heappush(heap, (gap_len / max(length, 1e-9), min(a, other), max(a, other)))
 
     continuity_pass(params.continuity_px, params.colour_distance)
+    if params.same_depth_px > 0:
+        continuity_pass(params.same_depth_px, np.inf)
     # small regions: into the most continuous neighbour, whatever its colour
     minimum = params.min_region_fraction * float(surfaces.labels.size)
     for _ in range(count):

@@ -36,11 +36,17 @@ def patch(result, x: int, y: int, size: int = 15) -> float:
     return float(np.median(result.disparity_px[y - size : y + size, x - size : x + size]))
 
 
+def region_at(result, x: int, y: int):
+    region_id = int(result.labels[y, x])
+    return next(r for r in result.regions if r.id == region_id)
+
+
 def test_dog_in_focus_books_then_wall(dog):
-    dog_px = patch(dog, 420, 300)  # the toy dog's chest
+    dog_px = region_at(dog, 420, 300).disparity_px  # the toy dog's body (a region: the fur is not one plane)
     books_px = patch(dog, 650, 300)  # the books to its right
     wall_px = patch(dog, 150, 100)  # the far background
     assert abs(dog_px) < 0.5  # widest pair; |d| < 0.25 in the authors' units
+    assert abs(patch(dog, 420, 300)) < 1.25  # its chest, nearer than its ears: within 0.6 of the authors' d
     assert dog_px < books_px < wall_px  # books nearer than the background, both behind the dog
     assert 5.0 < books_px < 12.0 and 10.0 < wall_px < 17.0  # ~ 2 x (4, 6) of the NOTICE
 
@@ -50,3 +56,21 @@ def test_dog_region_is_the_focus_region(dog):
     region = next(r for r in dog.regions if r.id == region_id)
     assert abs(region.disparity_px) < 0.5
     assert region.distance_mm is None  # no optics for this camera: pixels only
+
+
+def test_dog_books_wall_and_boxes_are_regions_apart(dog):
+    """Points on each object (dog body and ears, books, wall, cookie boxes): no region holds two objects, and the
+    dog's body and both ears are one region. (Books and wall still come in two or more regions each: see
+    docs/pipeline.md, known gaps.)"""
+    points = {
+        "dog": [(420, 300), (290, 200), (540, 200)],
+        "books": [(650, 300), (620, 420)],
+        "wall": [(150, 100), (650, 40)],
+        "boxes": [(150, 250), (200, 420)],
+    }
+    owner: dict[int, str] = {}
+    for name, xys in points.items():
+        for x, y in xys:
+            region_id = int(dog.labels[y, x])
+            assert owner.setdefault(region_id, name) == name, (name, (x, y), owner[region_id])
+    assert len({int(dog.labels[y, x]) for x, y in points["dog"]}) == 1

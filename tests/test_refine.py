@@ -34,7 +34,7 @@ def test_a_fronto_parallel_region_is_refined_to_a_tenth_of_a_pixel(truth):
 
 def test_a_slanted_region_gets_its_plane():
     shape = (200, 300)
-    ys, xs = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float32)
+    _ys, xs = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float32)
     truth = 0.012 * xs - 1.0  # -1 .. +2.6 across the image
     image = render_layers([(texture(shape, 5, blur_px=2.5), np.ones(shape, np.float32), truth)], shape, APERTURE)
     labels = np.ones(shape, np.int32)

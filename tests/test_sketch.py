@@ -63,7 +63,7 @@ def test_region_boundaries_follow_the_objects(boxes):
 
 def test_a_slanted_floor_is_one_slanted_region_and_a_card_on_it_another():
     shape = (200, 300)
-    ys, xs = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float32)
+    _ys, xs = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float32)
     floor_d = 1.0 + 0.025 * xs  # 1 px at the left edge, 8.5 px at the right
     card = np.zeros(shape, np.float32)
     card[60:140, 110:190] = 1
@@ -87,7 +87,7 @@ def test_a_slanted_floor_is_one_slanted_region_and_a_card_on_it_another():
 
 
 def test_tiny_regions_are_absorbed():
-    image, points, _ = two_boxes_scene(APERTURE)
+    image, _points, _ = two_boxes_scene(APERTURE)
     sketch = sketch_of(image, (-6.0, 9.0), SketchParams(min_region_fraction=0.05))
     smallest = min(r.pixels for r in sketch.regions)
     assert smallest >= 0.05 * sketch.labels.size or len(sketch.regions) == 1
