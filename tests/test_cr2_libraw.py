@@ -286,3 +286,39 @@ def test_the_default_metadata_is_written_and_read_back(tmp_path: Path) -> None:
     assert meta.exposure_time_s == pytest.approx(1 / 125)
     assert meta.capture_time == datetime(2024, 1, 1, 12, 0, 0)
     assert meta.focus_distance_m is None
+
+
+def test_every_size_the_writer_avoids_is_one_libraw_crops_from_its_own_table(monkeypatch: pytest.MonkeyPatch) -> None:
+    """LibRaw itself confirms the writer's table: a frame of a listed size has its crop taken from LibRaw's
+    Canon table, not from the file's SensorInfo (only the headers are read: the scan is a stub)."""
+    import struct
+
+    encode = cr2.encode_lossless_jpeg
+
+    def header_only(rows: np.ndarray, components: int, precision: int) -> bytes:
+        jpeg = bytearray(encode(np.zeros((2, 2 * components), np.uint16), components, precision))
+        sof = jpeg.index(b"\xff\xc3")
+        jpeg[sof + 5 : sof + 9] = struct.pack(">HH", rows.shape[0], rows.shape[1] // components)
+        return bytes(jpeg)
+
+    table = sorted(cr2._LIBRAW_CANON_TABLE_SIZES)
+    assert len(table) > 30
+    monkeypatch.setattr(cr2, "encode_lossless_jpeg", header_only)
+    monkeypatch.setattr(cr2, "_LIBRAW_CANON_TABLE_SIZES", frozenset())  # let the writer make those frames
+    left, top = cr2.LEFT_MARGIN_PX, cr2.TOP_MARGIN_PX
+
+    def libraw_crop(frame_width: int, frame_height: int) -> tuple[int, int, int, int]:
+        data = cr2.cr2_bytes(np.zeros((frame_height - top, frame_width - left), np.uint16), preview=False)
+        with rawpy.RawPy() as raw:
+            raw.open_buffer(io.BytesIO(data))
+            s = raw.sizes
+            assert (s.raw_width, s.raw_height) == (frame_width, frame_height)
+            return s.width, s.height, s.left_margin, s.top_margin
+
+    reachable = [(w, h) for w, h in table if (w - left) % 2 == 0 and (h - top) % 2 == 0]  # even mosaics only
+    assert len(reachable) > 30
+    for width, height in reachable:
+        ours = (width - left, height - top, left, top)
+        assert libraw_crop(width, height) != ours, (width, height)
+    # and a size next to one of them follows the file
+    assert libraw_crop(5570, 3708) == (5570 - left, 3708 - top, left, top)
