@@ -156,3 +156,33 @@ def test_tiff_samples_of_each_kind_are_linearised_as_their_kind_says(tmp_path: P
     tifffile.imwrite(tmp_path / "d.tiff", planar, photometric="rgb", planarconfig="separate")
     np.testing.assert_allclose(read_raw(tmp_path / "d.tiff").planes[0, 0], np.array([100, 200, 300]) / 65535, rtol=1e-6)
     assert not math.isnan(float(read_raw(tmp_path / "c.tiff").planes.sum()))
+
+
+def test_planes_from_memory_must_be_three_colour_planes() -> None:
+    from mca.capture.raw import RawFrame
+
+    frame = RawFrame.from_planes(np.zeros((4, 6, 3)), pixel_pitch_mm=0.008, name="x")
+    assert frame.planes.dtype == np.float32 and frame.pixel_pitch_mm == 0.008 and frame.source_format == "array"
+    for shape in ((4, 6), (4, 6, 4), (4, 6, 1)):
+        with pytest.raises(ValueError, match=r"planes must be \(H, W, 3\)"):
+            RawFrame.from_planes(np.zeros(shape))
+
+
+def test_a_file_too_large_for_the_pixel_limit_says_its_size(tmp_path: Path) -> None:
+    path = tmp_path / "huge.png"
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(100 << 20))  # 100 MiB
+    with raw.read_policy(max_megapixels=1.0), pytest.raises(raw.ImageTooLargeError, match="is 100 MiB, more than"):
+        read_raw(path)
+
+
+def test_photograph_mode_refuses_float_samples_that_are_not_finite(tmp_path: Path) -> None:
+    import tifffile
+
+    nan = np.full((4, 4, 3), np.nan, np.float32)
+    tifffile.imwrite(tmp_path / "nan.tiff", nan, photometric="rgb")
+    with raw.read_policy(photograph=True), pytest.raises(raw.NotAPhotographError, match="no finite sample"):
+        read_raw(tmp_path / "nan.tiff")
+    ok = np.full((32, 32, 3), 0.5, np.float32)
+    tifffile.imwrite(tmp_path / "ok.tiff", ok, photometric="rgb")
+    with raw.read_policy(photograph=True):
+        assert float(read_raw(tmp_path / "ok.tiff").planes.mean()) == pytest.approx(0.5)
