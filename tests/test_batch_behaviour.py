@@ -227,3 +227,18 @@ def test_tasks_keep_their_recording_place(tmp_path: Path) -> None:
     assert batch._key(task) == "3-x"
     failed = batch.runner_failed(tmp_path, task, "why")
     assert failed.status == "failed" and failed.reason == f"{tmp_path / 'x.png'}: why"
+
+
+def test_defaults_and_values(tmp_path: Path) -> None:
+    from dataclasses import FrozenInstanceError
+
+    from mca.capture.pipeline_app import FileOutcome
+
+    assert isinstance(make_runner(tmp_path, PROFILE), batch.InlineRunner)  # one worker unless asked
+    task = Task(tmp_path / "x.png", "x")
+    with pytest.raises(FrozenInstanceError):
+        task.out_name = "y"  # type: ignore[misc]
+    lines: list[str] = []
+    progress = LineProgress(lines.append)
+    progress.finished(task, FileOutcome(task.input_path, "done", tmp_path, 1.25, regions=3))
+    assert lines == ["[1/0] done    x.png 1.2 s 3 regions"]  # nothing discovered yet: a total of 0
