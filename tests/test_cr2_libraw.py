@@ -322,3 +322,22 @@ def test_every_size_the_writer_avoids_is_one_libraw_crops_from_its_own_table(mon
         assert libraw_crop(width, height) != ours, (width, height)
     # and a size next to one of them follows the file
     assert libraw_crop(5570, 3708) == (5570 - left, 3708 - top, left, top)
+    # with its table, the writer never gives LibRaw a frame it would crop on its own: mosaics whose
+    # natural frame is a listed size or next to one are decoded with the crop the file states
+    monkeypatch.setattr(cr2, "_LIBRAW_CANON_TABLE_SIZES", frozenset(table))
+    for width, height in table:
+        for dw in (-1, 0, 1):
+            if (width + dw - left) % 2 or (height - top) % 2:
+                continue  # the writer only takes even mosaics
+            mosaic = np.zeros((height - top, width + dw - left), np.uint16)
+            data = cr2.cr2_bytes(mosaic, preview=False)
+            used_left, used_top = cr2.raw_frame_geometry(*mosaic.shape)[2:]
+            with rawpy.RawPy() as raw:
+                raw.open_buffer(io.BytesIO(data))
+                s = raw.sizes
+                assert (s.width, s.height, s.left_margin, s.top_margin) == (
+                    mosaic.shape[1],
+                    mosaic.shape[0],
+                    used_left,
+                    used_top,
+                ), (width + dw, height)
