@@ -1,5 +1,13 @@
 #!/usr/bin/env python3
-"""Set up a fresh machine and run the project: `python3 dev.py demo` or `python3 dev.py test`.
+"""Set up a fresh machine and run the project: `python3 dev.py demo`, `python3 dev.py test`, `python3 dev.py mutate`.
+
+    python3 dev.py demo [mca demo options]      the main job, outputs in demo-out/
+    python3 dev.py test [pytest options]        the whole test suite (what CI runs)
+    python3 dev.py mutate [MODULE...] [--sample N] [--jobs N] [--resume] [--fail-under PCT]
+                                                mutation testing (cosmic-ray): each module's score and its
+                                                surviving mutants; MODULE is a path (capture/batch.py,
+                                                processing/) or a name (mca.capture.batch); default: the
+                                                modules in mutation/config.toml (README, Quick start)
 
 Needs only Python >= 3.11 with pip. Creates `.venv` when missing, installs the
 project with its test and lint extras whenever pyproject.toml changed, and on
@@ -91,8 +99,19 @@ def ensure_gltf_validator() -> None:
         _say("npm could not install the glTF validator; its test will skip (and fail on CI)")
 
 
+MUTATION_TOOLS = ["cosmic-ray==8.7.0", "coverage==7.17.3"]  # pinned: a new release must not change the scores
+
+
+def ensure_mutation_tools() -> None:
+    probe = subprocess.run([str(BIN / "python"), "-c", "import cosmic_ray, coverage"], capture_output=True)
+    if probe.returncode == 0:
+        return
+    _say(f"installing {' '.join(MUTATION_TOOLS)} into .venv")
+    subprocess.run([str(BIN / "python"), "-m", "pip", "install", "-q", *MUTATION_TOOLS], check=True)
+
+
 def main(argv: list[str]) -> int:
-    if len(argv) < 1 or argv[0] not in {"demo", "test"}:
+    if len(argv) < 1 or argv[0] not in {"demo", "test", "mutate"}:
         print(__doc__)
         return 2
     os.chdir(ROOT)
@@ -100,6 +119,9 @@ def main(argv: list[str]) -> int:
     env = dict(os.environ, RERUN_ANALYTICS="0")
     if argv[0] == "demo":
         return subprocess.call([str(BIN / "mca"), "demo", "--out", "demo-out", *argv[1:]], env=env)
+    if argv[0] == "mutate":
+        ensure_mutation_tools()
+        return subprocess.call([str(BIN / "python"), str(ROOT / "mutation" / "mutate.py"), *argv[1:]], env=env)
     ensure_system_tools()
     ensure_gltf_validator()
     return subprocess.call([str(BIN / "python"), "-m", "pytest", *argv[1:]], env=env)

@@ -3,6 +3,7 @@ through our USB transport and `Camera`, with libgphoto2's own printout of the sa
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -40,8 +41,9 @@ from mca.devices.sim_eos70d.usb_backend import SimUsbBackend
 TRACES = Path(__file__).resolve().parents[1] / ".." / "shared" / "reference" / "eos-traces"
 if not TRACES.is_dir():
     TRACES = Path("/work/shared/reference/eos-traces")
-pytestmark = pytest.mark.skipif(
-    not TRACES.is_dir(), reason="the EOS traces (../shared/reference/eos-traces) are absent"
+pytestmark = pytest.mark.skipif(  # the independent PTP reference: on CI (CI set) its absence fails the tests
+    not TRACES.is_dir() and not os.environ.get("CI"),
+    reason="the EOS traces (../shared/reference/eos-traces) are absent",
 )
 
 SESSIONS = {

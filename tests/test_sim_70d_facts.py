@@ -4,6 +4,7 @@ them over the USB stack. Where the simulator differs on purpose, `EXPECTED_DIFFE
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 
@@ -21,8 +22,9 @@ for candidate in (Path(__file__).resolve().parents[2] / "shared" / "reference" /
     if candidate.is_dir():
         TRACES = candidate
         break
-pytestmark = pytest.mark.skipif(
-    not TRACES.is_dir(), reason="the EOS 70D facts (../shared/reference/eos-traces) are absent"
+pytestmark = pytest.mark.skipif(  # on CI (CI set) the absence of the facts fails the tests
+    not TRACES.is_dir() and not os.environ.get("CI"),
+    reason="the EOS 70D facts (../shared/reference/eos-traces) are absent",
 )
 
 #: Where the simulated body differs from the dump's 70D, and why (the dump's owner had a kit zoom, the dial on

@@ -275,12 +275,13 @@ class PtpIpTransport(Transport):
         if kind != INIT_EVENT_ACK:
             self.close()
             raise TransportError(f"{self.name} refused the event connection (packet type {kind})")
+        # set here, not in the thread: a transport closed at once must not leave the thread a closed socket
+        evt.settimeout(0.5)
         self._event_thread = threading.Thread(target=self._read_events, name="ptpip-events", daemon=True)
         self._event_thread.start()
 
     # -- the event connection, read all the time ----------------------------------------------------------------
     def _read_events(self) -> None:
-        self.evt.sock.settimeout(0.5)
         while not self._closed:
             try:
                 kind, body = self.evt.recv_packet()
