@@ -731,7 +731,19 @@ def _default_pipeline() -> PipelineFunction:
 
 StageCallback = Callable[[str], None]
 # What a file goes through, in order: the pipeline's stages (processing/pipeline.py) between reading and writing.
-STAGES = ("read", "planes", "disparity", "sketch", "refine", "depth", "all_in_focus", "mpi", "write")
+STAGES = (
+    "read",
+    "planes",
+    "disparity",
+    "surfaces",
+    "sketch",
+    "refine",
+    "boundaries",
+    "depth",
+    "all_in_focus",
+    "mpi",
+    "write",
+)
 
 
 def _announce(on_stage: StageCallback | None, stage: str) -> None:
