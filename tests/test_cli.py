@@ -39,7 +39,10 @@ def test_shell_completion_completes_commands_and_subcommands() -> None:
     out = subprocess.run([str(command)], env=env, capture_output=True, text=True, timeout=60)
     assert out.stdout.split() == ["show", "set"]
     # the script a user installs, from the console script itself (in-process, typer's completion state is global)
-    script = subprocess.run([str(command), "--show-completion", "bash"], capture_output=True, text=True, timeout=60)
+    quiet = dict(os.environ, _TYPER_COMPLETE_TEST_DISABLE_SHELL_DETECTION="1")  # the shell is named, never guessed
+    script = subprocess.run(
+        [str(command), "--show-completion=bash"], env=quiet, capture_output=True, text=True, timeout=60
+    )
     assert script.returncode == 0 and "_MCA_COMPLETE" in script.stdout, script.stderr
 
 
