@@ -14,6 +14,17 @@ from mca.processing.features import feature_bands
 APERTURE = load_profile("paper-70d").aperture
 
 
+def bilinear(plane: np.ndarray, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
+    """Exact bilinear sampling (OpenCV's remap quantises positions to 1/32 px before 5.0)."""
+    h, w = plane.shape
+    x0 = np.clip(np.floor(mx).astype(int), 0, w - 2)
+    y0 = np.clip(np.floor(my).astype(int), 0, h - 2)
+    fx, fy = mx - x0, my - y0
+    top = plane[y0, x0] * (1 - fx) + plane[y0, x0 + 1] * fx
+    bottom = plane[y0 + 1, x0] * (1 - fx) + plane[y0 + 1, x0 + 1] * fx
+    return top * (1 - fy) + bottom * fy
+
+
 def reference_cost(bands: list[np.ndarray], shifts: np.ndarray, d: float, window: int, noise: float) -> np.ndarray:
     """Bando's colour-line measure written out: channels sampled at x + d s_c (bilinear, clamped), products
     pooled over the bands, window sums clamped at the borders, L = 1 - rg^2 - rb^2 - gb^2 + 2 rg rb gb."""
@@ -25,7 +36,7 @@ def reference_cost(bands: list[np.ndarray], shifts: np.ndarray, d: float, window
         for c in range(3):
             mx = np.clip(xs + np.float32(d * shifts[c, 0]), 0, w - 1)
             my = np.clip(ys + np.float32(d * shifts[c, 1]), 0, h - 1)
-            ch.append(cv2.remap(np.ascontiguousarray(band[..., c]), mx, my, cv2.INTER_LINEAR).astype(np.float64))
+            ch.append(bilinear(band[..., c].astype(np.float64), mx.astype(np.float64), my.astype(np.float64)))
         r, g, b = ch
         for key, value in (("rr", r * r), ("gg", g * g), ("bb", b * b), ("rg", r * g), ("rb", r * b), ("gb", g * b)):
             sums[key] += value
