@@ -39,20 +39,9 @@ import tempfile
 import time
 from pathlib import Path
 
-STAGE_ORDER = (
-    "read",
-    "planes",
-    "disparity",
-    "surfaces",
-    "sketch",
-    "refine",
-    "boundaries",
-    "depth",
-    "all_in_focus",
-    "mpi",
-    "pipeline",
-    "write",
-)
+from mca.capture.pipeline_app import STAGES
+
+STAGE_ORDER = (*STAGES[:-1], "pipeline", STAGES[-1])  # the progress stages, the pipeline's total before the writes
 MCA = str(Path(sys.executable).with_name("mca"))
 REPO = Path(__file__).resolve().parents[1]
 MIDDLEBURY = REPO.parent / "shared" / "data" / "middlebury"
