@@ -45,7 +45,8 @@ def limit_threads(count: int) -> dict[str, int]:
     if "numba" in sys.modules:  # loaded already: its pool exists; set_num_threads limits this thread's use of it
         import numba
 
-        numba.set_num_threads(min(count, numba.config.NUMBA_NUM_THREADS))
+        # NUMBA_NUM_THREADS is set on numba.config at run time, out of mypy's sight
+        numba.set_num_threads(min(count, numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
         applied["numba"] = numba.get_num_threads()
     try:
         import cv2
