@@ -3,8 +3,8 @@
 The colour-line cost (`processing.cost`) compares the channels' local structure, not their brightness: each
 channel is log-compressed (exposure and shading become offsets) and reduced to three band-pass planes, its
 horizontal and vertical derivatives at a fine scale and a difference of Gaussians. Zero local mean lets the
-cost use uncentred correlations; the fine blur band-limits the planes so that bilinear sampling at sub-pixel
-shifts is nearly exact. `texture_energy` says how much there is to align at each pixel.
+cost use uncentred correlations; the fine blur band-limits the planes for sampling at sub-pixel shifts
+(`processing.cost`). `texture_energy` says how much there is to align at each pixel.
 """
 
 from __future__ import annotations

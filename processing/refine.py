@@ -179,7 +179,7 @@ def refine_regions(
         """Per used (region, cell) bin and offset: the weighted cost sum of the model shifted by the offset."""
         maps = np.stack([base + np.float32(o) for o in offsets]).astype(np.float32)
         maps = _occluders_own_contours(maps, near_occluder, reach)
-        costs = cost_at(bands, aperture, maps, params.window_px, params.noise_floor)
+        costs = cost_at(bands, aperture, maps, params.window_px, params.noise_floor, sampling="bilinear")
         return np.stack([np.bincount(bins, (c.ravel() * wflat), n_bins)[used] for c in costs], axis=1)
 
     tilt = planar & ~flat  # slanted planar regions: the plane itself is refined
