@@ -10,15 +10,18 @@ channel, so objects of any colour align. It is evaluated on zero-mean band-pass 
 Geometry: for a candidate disparity d of the widest filter pair, channel c is sampled at x + d s_c, where
 s_c = `FilterAperture.shift_per_disparity(c)` (px of channel displacement per px of disparity).
 
-Sampling: through the cubic B-spline (4 x 4 taps), not bilinearly. Interpolating averages neighbouring
-pixels' noise: bilinear sampling halfway between pixels halves the noise variance, so with sensor noise the
+Sampling: through the cubic B-spline (4 x 4 taps) or bilinearly. Interpolating averages neighbouring pixels'
+noise: bilinear sampling halfway between pixels halves the noise variance, so with white sensor noise the
 channels correlate best where they all fall between pixels, and the minimum is pulled towards those
-disparities (odd red-blue disparities for the paper's aperture; up to 0.4 px on the rendered real scenes).
-The B-spline's noise gain is 0.46-0.50 at every offset, and its smoothing is the same at every offset.
-On the rendered real scenes (tuning part) this lowered bad-0.5 from 27.0 to 23.6 % and the worst scene's
-bad-1 from 21.3 to 19.3 %. The region refinement (`cost_at(sampling="bilinear")`) still samples
-bilinearly: with the B-spline there too, the real scenes gained a little more but the synthetic
-paper scenes' median object error rose from 1.8 to 3.5 % (cause not yet understood; issue 12).
+disparities (odd red-blue disparities for the paper's aperture; up to 0.4 px on the rendered real scenes,
+which are full-colour images with white noise). The B-spline's noise gain is 0.46-0.50 at every offset. On
+those scenes (tuning part) it lowered bad-0.5 from 27.0 to 23.6 % and the worst scene's bad-1 from 21.3 to
+19.3 %. Bayer-plane input is different: its red and blue planes have already been interpolated a quarter
+pixel (`pipeline.align_channel_samples`), so their noise is no longer white, and there the B-spline made
+things worse (the simulator's paper scenes: median object error 1.3 -> 1.8 %, the in-focus object
+1.4 -> 6.6 mm on paper-f at quarter size). The pipeline therefore picks the sampler by input
+(`DenseParams.sampling`, "auto"). The region refinement always samples bilinearly (`cost_at(sampling=
+"bilinear")`): with the B-spline there as well the paper scenes' median rose to 3.5 %.
 
 Both kernels are compiled with numba (pure numpy would spend seconds per megapixel here): the box sums are
 running sums over a ring buffer of rows, so one candidate costs one pass over the image.
@@ -114,6 +117,35 @@ def _bilinear(img: np.ndarray, y: float, x: float) -> float:
 
 
 @nb.njit(cache=True, fastmath=True, inline="always")
+def _sample_row_bilinear(src: np.ndarray, y: int, sx: float, sy: float, out: np.ndarray) -> None:
+    """out[x] = src bilinearly sampled at (x + sx, y + sy), coordinates clamped to the image."""
+    h, w = src.shape
+    fy = min(max(y + sy, 0.0), h - 1.0)
+    y0 = int(fy)
+    ty = fy - y0
+    y1 = min(y0 + 1, h - 1)
+    ix = int(np.floor(sx))
+    tx = sx - ix
+    a = (1.0 - tx) * (1.0 - ty)
+    b = tx * (1.0 - ty)
+    c = (1.0 - tx) * ty
+    d = tx * ty
+    lo = min(max(-ix, 0), w)  # first x whose taps x + ix, x + ix + 1 are both inside
+    hi = max(min(w - 1 - ix - 1, w - 1), lo - 1)  # last such x
+    for x in range(w):
+        if x < lo or x > hi:
+            xa = min(max(x + ix, 0), w - 1)
+            xb = min(max(x + ix + 1, 0), w - 1)
+            out[x] = a * src[y0, xa] + b * src[y0, xb] + c * src[y1, xa] + d * src[y1, xb]
+    if ty == 0.0:
+        for x in range(lo, hi + 1):
+            out[x] = (1.0 - tx) * src[y0, x + ix] + tx * src[y0, x + ix + 1]
+    else:
+        for x in range(lo, hi + 1):
+            out[x] = a * src[y0, x + ix] + b * src[y0, x + ix + 1] + c * src[y1, x + ix] + d * src[y1, x + ix + 1]
+
+
+@nb.njit(cache=True, fastmath=True, inline="always")
 def _sample_row_map(
     src: np.ndarray, y: int, disparity_row: np.ndarray, sx: float, sy: float, out: np.ndarray, bspline: bool
 ) -> None:
@@ -161,9 +193,18 @@ def _cost_map(bands, shifts, d, disparity, radius, eps, out, bspline):
                     _sample_row_map(bands[b, 1], y, disparity[y], shifts[1, 0], shifts[1, 1], gg, bspline)
                     _sample_row_map(bands[b, 2], y, disparity[y], shifts[2, 0], shifts[2, 1], bb, bspline)
                 else:
-                    _sample_row(bands[b, 0], y, d * shifts[0, 0], d * shifts[0, 1], rr, tmp)
-                    _sample_row(bands[b, 1], y, d * shifts[1, 0], d * shifts[1, 1], gg, tmp)
-                    _sample_row(bands[b, 2], y, d * shifts[2, 0], d * shifts[2, 1], bb, tmp)
+                    if bspline:
+                        _sample_row(bands[b, 0], y, d * shifts[0, 0], d * shifts[0, 1], rr, tmp)
+                    else:
+                        _sample_row_bilinear(bands[b, 0], y, d * shifts[0, 0], d * shifts[0, 1], rr)
+                    if bspline:
+                        _sample_row(bands[b, 1], y, d * shifts[1, 0], d * shifts[1, 1], gg, tmp)
+                    else:
+                        _sample_row_bilinear(bands[b, 1], y, d * shifts[1, 0], d * shifts[1, 1], gg)
+                    if bspline:
+                        _sample_row(bands[b, 2], y, d * shifts[2, 0], d * shifts[2, 1], bb, tmp)
+                    else:
+                        _sample_row_bilinear(bands[b, 2], y, d * shifts[2, 0], d * shifts[2, 1], bb)
                 for x in range(w):
                     ring[slot, 0, x] += rr[x] * rr[x]
                     ring[slot, 1, x] += gg[x] * gg[x]
@@ -206,13 +247,15 @@ def _cost_map(bands, shifts, d, disparity, radius, eps, out, bspline):
 
 
 @nb.njit(cache=True, parallel=True)
-def _volume(bands: np.ndarray, shifts: np.ndarray, candidates: np.ndarray, radius: int, eps: float) -> np.ndarray:
+def _volume(
+    bands: np.ndarray, shifts: np.ndarray, candidates: np.ndarray, radius: int, eps: float, bspline: bool
+) -> np.ndarray:
     _, _, h, w = bands.shape
     count = candidates.shape[0]
     out = np.empty((count, h, w), np.float32)
     none = np.zeros((0, w), np.float32)
     for k in nb.prange(count):
-        _cost_map(bands, shifts, candidates[k], none, radius, eps, out[k], True)
+        _cost_map(bands, shifts, candidates[k], none, radius, eps, out[k], bspline)
     return out
 
 
@@ -233,19 +276,35 @@ def stack_bands(bands: list[np.ndarray]) -> np.ndarray:
     return np.ascontiguousarray(np.stack([np.moveaxis(b, -1, 0) for b in bands]), dtype=np.float32)
 
 
+SAMPLINGS = ("bspline", "bilinear")
+
+
+def _check_sampling(sampling: str) -> bool:
+    if sampling not in SAMPLINGS:
+        raise ValueError(f"sampling must be one of {SAMPLINGS}, not {sampling!r}")
+    return sampling == "bspline"
+
+
 def cost_volume(
-    bands: np.ndarray, aperture: FilterAperture, candidates_px: np.ndarray, window_px: int, noise_floor: float
+    bands: np.ndarray,
+    aperture: FilterAperture,
+    candidates_px: np.ndarray,
+    window_px: int,
+    noise_floor: float,
+    sampling: str = "bspline",
 ) -> np.ndarray:
     """(D, H, W) float32 colour-line cost of every pixel at every candidate disparity (px of these planes).
 
     `bands` (B, 3, H, W) from `stack_bands`; `noise_floor` is the band-pass amplitude treated as flat (it
-    regularises the correlations of windows with nothing to align)."""
+    regularises the correlations of windows with nothing to align); `sampling` "bspline" or "bilinear" (see
+    the module docstring for which to use when)."""
     return _volume(
         bands,
         channel_shifts(aperture),
         np.asarray(candidates_px, np.float64),
         int(window_px) // 2,
         float(noise_floor) ** 2,
+        _check_sampling(sampling),
     )
 
 
@@ -261,11 +320,8 @@ def cost_at(
 
     `sampling` "bspline" (as `cost_volume`) or "bilinear" (what the region refinement measures on; see the
     module docstring)."""
-    if sampling not in ("bspline", "bilinear"):
-        raise ValueError(f"sampling must be 'bspline' or 'bilinear', not {sampling!r}")
+    bspline = _check_sampling(sampling)
     maps = np.ascontiguousarray(disparity_maps_px, dtype=np.float32)
     if maps.ndim == 2:
         maps = maps[None]
-    return _at_maps(
-        bands, channel_shifts(aperture), maps, int(window_px) // 2, float(noise_floor) ** 2, sampling == "bspline"
-    )
+    return _at_maps(bands, channel_shifts(aperture), maps, int(window_px) // 2, float(noise_floor) ** 2, bspline)
