@@ -381,9 +381,18 @@ def run_module(
                     db.set_result(item.job_id, WorkResult(worker_outcome=WorkerOutcome.SKIPPED, output="not sampled"))
                     continue
                 row = mutation.start_pos[0]
+                try:
+                    diff = mutant_diff(target, source, mutation.operator_name, mutation.occurrence)
+                except Exception as error:  # cosmic-ray 8.7's ExceptionReplacer fails on dotted names (a.b.Error)
+                    db.set_result(
+                        item.job_id,
+                        WorkResult(
+                            worker_outcome=WorkerOutcome.NO_TEST, output=f"cosmic-ray cannot make it: {error!r}"
+                        ),
+                    )
+                    continue
                 candidate = equivalence.may_apply(tuple(mutation.start_pos), mutation.operator_name)
                 if candidate or row in missing:
-                    diff = mutant_diff(target, source, mutation.operator_name, mutation.occurrence)
                     _, after = diff_lines(diff)
                     reason = equivalence.reason(tuple(mutation.start_pos), mutation.operator_name, after)
                     if reason is not None:
