@@ -6,15 +6,17 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from mca_scenes import render_layers, texture
 
-from mca.processing.dense import _winner, candidate_disparities
+from mca.capture.profiles import load_profile
+from mca.processing.dense import _winner, candidate_disparities, estimate_dense
 
 
 def _volume(curves: list[np.ndarray]) -> np.ndarray:
     return np.ascontiguousarray(np.array(curves, np.float32)[None, :, :])  # (1, W, D)
 
 
-@pytest.mark.parametrize("truth_px", [0.3, -0.62, 0.0, 1.1])
+@pytest.mark.parametrize("truth_px", [0.3, -0.62, 0.0, 1.1, -1.1])  # -1.1: the winner is the second candidate
 def test_the_vertex_of_a_quadratic_cost_is_found_between_candidates(truth_px: float) -> None:
     candidates = candidate_disparities((-1.5, 1.5), 0.5)  # -1.5, -1.0, ..., 1.5
     curve = (candidates - truth_px) ** 2
@@ -47,3 +49,16 @@ def test_the_confidence_is_clipped_and_zero_without_a_far_candidate() -> None:
     single = np.array([0.5])
     disparity, confidence = _winner(_volume([np.array([2.0])]), single, 1.0)
     assert (disparity[0, 0], confidence[0, 0]) == (0.5, 0.0)
+
+
+def test_a_textured_surface_is_found_with_confidence_and_a_flat_image_has_none() -> None:
+    aperture = load_profile("paper-70d").aperture
+    shape = (96, 120)
+    image = render_layers([(texture(shape, 1), np.ones(shape, np.float32), 1.7)], shape, aperture)
+    result = estimate_dense(image, aperture, (-8.0, 8.0))
+    core = (slice(20, -20), slice(20, -20))
+    assert abs(float(np.median(result.disparity_px[core])) - 1.7) < 0.1
+    assert float(np.mean(result.confidence[core] > 0.05)) > 0.9
+    assert float(result.confidence.min()) >= 0.0 and float(result.confidence.max()) <= 1.0
+    flat = estimate_dense(np.full((*shape, 3), 0.4, np.float32), aperture, (-8.0, 8.0))
+    assert float(flat.confidence.max()) == 0.0
