@@ -492,7 +492,7 @@ def _maker_notes(
     file_info[0] = 2 * len(file_info)
     if meta.focus_distance_m is not None:
         cm = 65535 if meta.focus_distance_m > 655.34 else max(1, round(meta.focus_distance_m * 100))
-        file_info[19] = file_info[20] = cm  # FocusDistanceUpper / Lower, cm
+        file_info[20] = file_info[21] = cm  # FocusDistanceUpper / Lower, cm (ExifTool's Canon::FileInfo 20, 21)
     entries.append(_shorts(0x0093, file_info))
     if meta.lens_model:
         entries.append(_ascii(0x0095, meta.lens_model))

@@ -684,8 +684,10 @@ def _metadata(tiff: _Tiff | None, image_width_px: int | None = None) -> dict[str
             capture_time = None
     focus = number(exif.get(0x9206))
     info = notes.get(0x0093)
-    if focus is None and isinstance(info, tuple) and len(info) > 20 and info[19]:
-        upper, lower = info[19], info[20] or info[19]
+    # Canon FileInfo (maker-note tag 0x0093, int16 words, word 0 its length in bytes): FocusDistanceUpper is
+    # word 20 and FocusDistanceLower word 21, in cm (ExifTool's Canon::FileInfo table; word 19 is LiveViewShooting)
+    if focus is None and isinstance(info, tuple) and len(info) > 21 and info[20]:
+        upper, lower = info[20], info[21] or info[20]
         focus = math.inf if upper >= 65535 else (upper + lower) / 200.0  # cm -> m, middle of the range
     iso = _first(exif.get(0x8827))
     pitch = photosite_pitch_mm(model, make)

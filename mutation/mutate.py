@@ -224,6 +224,21 @@ def uncovered_lines(target: Path, executed: set[int]) -> set[int]:
     return missing
 
 
+def compiled_lines(source: str) -> set[int]:
+    """Lines of functions compiled by numba (@nb.njit, @numba.jit, @guvectorize, ...): coverage cannot trace
+    compiled code, so these lines are never "not covered"; their mutants are run like any other."""
+    import ast
+
+    lines: set[int] = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef) and any(
+            re.search(r"\b(n?jit|[gu]*vectorize|stencil|cfunc)\b", ast.unparse(d)) for d in node.decorator_list
+        ):
+            first = min([node.lineno, *(d.lineno for d in node.decorator_list)])
+            lines.update(range(first, (node.end_lineno or node.lineno) + 1))
+    return lines
+
+
 def load_equivalents(path: Path) -> list[dict[str, str]]:
     entries = tomllib.loads(EQUIVALENT.read_text("utf-8")).get("mutant", []) if EQUIVALENT.exists() else []
     return [e for e in entries if e.get("module") == str(path)]
@@ -362,7 +377,7 @@ def run_module(
         keep = set(config["operators"])
         with use_db(str(session), WorkDB.Mode.create) as db:
             init([target], db, {})
-            missing = uncovered_lines(target, executed)
+            missing = uncovered_lines(target, executed) - compiled_lines(source)
             equivalence = Equivalence(path, source)
             items = sorted(
                 db.work_items,
@@ -381,9 +396,18 @@ def run_module(
                     db.set_result(item.job_id, WorkResult(worker_outcome=WorkerOutcome.SKIPPED, output="not sampled"))
                     continue
                 row = mutation.start_pos[0]
+                try:
+                    diff = mutant_diff(target, source, mutation.operator_name, mutation.occurrence)
+                except Exception as error:  # cosmic-ray 8.7's ExceptionReplacer fails on dotted names (a.b.Error)
+                    db.set_result(
+                        item.job_id,
+                        WorkResult(
+                            worker_outcome=WorkerOutcome.NO_TEST, output=f"cosmic-ray cannot make it: {error!r}"
+                        ),
+                    )
+                    continue
                 candidate = equivalence.may_apply(tuple(mutation.start_pos), mutation.operator_name)
                 if candidate or row in missing:
-                    diff = mutant_diff(target, source, mutation.operator_name, mutation.occurrence)
                     _, after = diff_lines(diff)
                     reason = equivalence.reason(tuple(mutation.start_pos), mutation.operator_name, after)
                     if reason is not None:

@@ -94,14 +94,17 @@ def _winner_kernel(
                 if curvature > 1e-9:
                     offset = min(max(0.5 * (a[best - 1] - a[best + 1]) / curvature, -0.5), 0.5)
             disparity[y, x] = candidates[best] + offset * step
-            second = np.inf
+            # no infinity as "none yet": fastmath lets the compiler assume there is none (second == inf is false)
+            far = False
+            second = 0.0
             for d in range(count):
-                if abs(d - best) > 2 and a[d] < second:
+                if abs(d - best) > 2 and (not far or a[d] < second):
                     second = a[d]
-            if second == np.inf:
-                confidence[y, x] = 0.0
-            else:
+                    far = True
+            if far:
                 confidence[y, x] = min(max((second - at) / scale, 0.0), 1.0)
+            else:
+                confidence[y, x] = 0.0
 
 
 def _winner(aggregated: np.ndarray, candidates: np.ndarray, jump_cost: float) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,58 @@
+"""processing/features.py against values worked out here from its definitions: log1p(32 v / white) with white the
+99.5th percentile, the RMS feature amplitude of constant bands, the 1/2.2 display gamma, the derivative planes of
+a ramp and the difference of Gaussians of a flat plane.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mca.processing.features import display_gamma, feature_bands, log_compress, texture_energy
+
+
+def _planes() -> np.ndarray:
+    return np.random.default_rng(5).uniform(0.0, 0.8, (40, 50, 3))
+
+
+def test_log_compression_is_log1p_of_32_times_the_value_over_the_99_5th_percentile() -> None:
+    planes = _planes()
+    white = np.percentile(planes, 99.5)
+    np.testing.assert_allclose(log_compress(planes), np.log1p(32.0 * planes / white), rtol=1e-5)
+    np.testing.assert_array_equal(log_compress(np.zeros((4, 4, 3))), 0.0)  # black: white taken as 1, no NaN
+    assert log_compress(-planes).max() == 0.0  # negative noise is clipped to black
+
+
+def test_display_gamma_puts_white_at_the_99_5th_percentile() -> None:
+    planes = _planes()
+    white = np.percentile(planes, 99.5)
+    expected = np.clip(planes / white, 0.0, 1.0) ** (1 / 2.2)
+    got = display_gamma(planes)
+    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-6)
+    assert got.max() == pytest.approx(1.0) and (got[planes >= white] == pytest.approx(1.0))
+
+
+@pytest.mark.parametrize("amplitude", [0.0, 0.3, 2.0])
+def test_texture_energy_of_constant_bands_is_their_amplitude(amplitude: float) -> None:
+    """RMS over the bands' channels: three bands of 3 channels all at a give sqrt(9 a^2 / 9) = a."""
+    bands = [np.full((12, 16, 3), sign * amplitude, np.float32) for sign in (1.0, -1.0, 1.0)]
+    np.testing.assert_allclose(texture_energy(bands, 5), amplitude, rtol=1e-6)
+    one = texture_energy([np.full((12, 16, 3), amplitude, np.float32)], 3)  # one band: still its amplitude
+    np.testing.assert_allclose(one, amplitude, rtol=1e-6)
+
+
+def test_the_derivative_bands_of_a_log_ramp_are_its_slope_and_the_dog_of_a_flat_plane_is_zero() -> None:
+    """Planes exp(s x) / 32 (white 1) have log1p(32 v) ~ s x + log(1 + e^{-s x}): away from x = 0 a ramp of slope s
+    per pixel in x, none in y; a flat plane has no band-pass content."""
+    slope = 0.05
+    x = np.arange(80, dtype=np.float64)
+    ramp = np.exp(slope * (x + 40))[None, :, None] * np.ones((30, 1, 3))
+    ramp /= np.percentile(ramp, 99.5)
+    log = np.log1p(32.0 * ramp)
+    gx, gy, _dog = feature_bands(ramp)
+    expected = np.gradient(log, axis=1)[8:-8, 8:-8]
+    np.testing.assert_allclose(gx[8:-8, 8:-8], expected, atol=2e-3)
+    np.testing.assert_allclose(gy[8:-8, 8:-8], 0.0, atol=1e-5)
+    flat = feature_bands(np.full((24, 24, 3), 0.4))
+    for band in flat:
+        np.testing.assert_allclose(band, 0.0, atol=1e-6)
