@@ -82,6 +82,18 @@ def test_per_pixel_maps_equal_the_volume_at_constant_disparity():
     assert np.allclose(cost_at(bands, APERTURE, maps, 9, 2e-3), volume, atol=1e-5)
 
 
+def test_bilinear_volume_matches_the_written_out_measure():
+    """The Bayer-input sampler (`sampling="bilinear"`) at uniform candidates, green's vertical shift included."""
+    image = texture((48, 64), 7, blur_px=1.2)
+    bands = feature_bands(image)
+    shifts = channel_shifts(APERTURE)
+    candidates = np.array([-2.5, -0.75, 1.3])
+    volume = cost_volume(stack_bands(bands), APERTURE, candidates, 7, 2e-3, sampling="bilinear")
+    for k, d in enumerate(candidates):
+        expected = reference_cost(bands, shifts, float(d), 7, 2e-3, sample=bilinear)
+        assert np.abs(volume[k] - expected).max() < 2e-4, d
+
+
 def test_bilinear_per_pixel_maps_match_the_written_out_measure():
     """The refinement's sampler (`sampling="bilinear"`) at per-pixel disparities."""
     bands = feature_bands(texture((40, 56), 5, blur_px=1.2))
