@@ -10,18 +10,18 @@ channel, so objects of any colour align. It is evaluated on zero-mean band-pass 
 Geometry: for a candidate disparity d of the widest filter pair, channel c is sampled at x + d s_c, where
 s_c = `FilterAperture.shift_per_disparity(c)` (px of channel displacement per px of disparity).
 
-Sampling: through the cubic B-spline (4 x 4 taps) or bilinearly. Interpolating averages neighbouring pixels'
-noise: bilinear sampling halfway between pixels halves the noise variance, so with white sensor noise the
-channels correlate best where they all fall between pixels, and the minimum is pulled towards those
-disparities (odd red-blue disparities for the paper's aperture; up to 0.4 px on the rendered real scenes,
-which are full-colour images with white noise). The B-spline's noise gain is 0.46-0.50 at every offset. On
-those scenes (tuning part) it lowered bad-0.5 from 27.0 to 23.6 % and the worst scene's bad-1 from 21.3 to
-19.3 %. Bayer-plane input is different: its red and blue planes have already been interpolated a quarter
-pixel (`pipeline.align_channel_samples`), so their noise is no longer white, and there the B-spline made
-things worse (the simulator's paper scenes: median object error 1.3 -> 1.8 %, the in-focus object
-1.4 -> 6.6 mm on paper-f at quarter size). The pipeline therefore picks the sampler by input
-(`DenseParams.sampling`, "auto"). The region refinement always samples bilinearly (`cost_at(sampling=
-"bilinear")`): with the B-spline there as well the paper scenes' median rose to 3.5 %.
+Sampling: bilinear (the pipeline's default, `DenseParams.sampling`) or through the cubic B-spline (4 x 4
+taps). Interpolating averages neighbouring pixels' noise: bilinear sampling halfway between pixels halves the
+noise variance, so with white sensor noise in every channel the channels correlate best where they all fall
+between pixels, and the minimum is pulled towards those disparities (odd red-blue disparities for the paper's
+aperture; up to 0.4 px on the rendered real scenes, full-colour images with white noise at every pixel). The
+B-spline's noise gain is 0.46-0.50 at every offset. On those renders (tuning part) it lowered bad-0.5 from
+27.0 to 23.6 % and the worst scene's bad-1 from 21.3 to 19.3 %; held-out: worst 28.3 -> 25.7 %, median
+8.8 -> 9.2 %. But real input has no white noise per channel: Bayer planes are interpolated a quarter pixel
+(`pipeline.align_channel_samples`), demosaiced photographs more. There the B-spline did worse: the
+simulator's paper scenes (CR2) 1.3 -> 1.8 % median object error, paper-f's in-focus object 1.4 -> 6.6 mm at
+quarter size, and on Bando's dog photograph (at the lowest supported library versions) the dog joined the
+wall. Bilinear stays the default; the region refinement always samples bilinearly.
 
 Both kernels are compiled with numba (pure numpy would spend seconds per megapixel here): the box sums are
 running sums over a ring buffer of rows, so one candidate costs one pass over the image.
@@ -291,7 +291,7 @@ def cost_volume(
     candidates_px: np.ndarray,
     window_px: int,
     noise_floor: float,
-    sampling: str = "bspline",
+    sampling: str = "bilinear",
 ) -> np.ndarray:
     """(D, H, W) float32 colour-line cost of every pixel at every candidate disparity (px of these planes).
 
@@ -314,12 +314,11 @@ def cost_at(
     disparity_maps_px: np.ndarray,
     window_px: int,
     noise_floor: float,
-    sampling: str = "bspline",
+    sampling: str = "bilinear",
 ) -> np.ndarray:
     """Colour-line cost of every pixel at per-pixel disparities: (K, H, W) maps in, (K, H, W) costs out.
 
-    `sampling` "bspline" (as `cost_volume`) or "bilinear" (what the region refinement measures on; see the
-    module docstring)."""
+    `sampling` "bilinear" or "bspline", as for `cost_volume` (see the module docstring)."""
     bspline = _check_sampling(sampling)
     maps = np.ascontiguousarray(disparity_maps_px, dtype=np.float32)
     if maps.ndim == 2:

@@ -44,8 +44,7 @@ class DenseParams:
     alpha: float = 0.0  # how much image edges lower P2
     narrow_range: bool = True  # find the occupied range on a quarter-size image first
     range_margin_px: float = 2.0  # kept around the occupied range
-    sampling: str = "auto"  # the cost's sampler (`processing.cost`): "bspline", "bilinear"; "auto": the pipeline
-    # picks bilinear for Bayer planes it aligned itself, the B-spline for full-colour input
+    sampling: str = "bilinear"  # the cost's sampler, "bilinear" or "bspline" (`processing.cost` says when which)
 
 
 @dataclass
@@ -65,8 +64,7 @@ def candidate_disparities(range_px: tuple[float, float], step_px: float) -> np.n
 
 
 def _volume_hwd(bands: np.ndarray, aperture: FilterAperture, candidates: np.ndarray, params: DenseParams) -> np.ndarray:
-    sampling = "bspline" if params.sampling == "auto" else params.sampling
-    return cost_volume(bands, aperture, candidates, params.window_px, params.noise_floor, sampling)
+    return cost_volume(bands, aperture, candidates, params.window_px, params.noise_floor, params.sampling)
 
 
 def _upsampled(volume_dhw: np.ndarray, shape: tuple[int, int]) -> np.ndarray:

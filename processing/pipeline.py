@@ -25,7 +25,7 @@ The paper's steps (sections IV-V), each a stage reported to the recorder under t
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -224,11 +224,7 @@ def run_pipeline(
             aperture, optics, (int(height * pixel_scale), int(width * pixel_scale))
         )
         range_an = (range_in[0] / to_input, range_in[1] / to_input)
-        dense_params = params.dense
-        if dense_params.sampling == "auto":  # Bayer planes aligned here sample bilinearly (processing.cost)
-            sampling = "bilinear" if channel_offsets_px is not None else "bspline"
-            dense_params = replace(dense_params, sampling=sampling)
-        dense = estimate_dense(small, aperture, range_an, dense_params)
+        dense = estimate_dense(small, aperture, range_an, params.dense)
         recorder.record(
             "disparity",
             disparity_px=dense.disparity_px * np.float32(to_input),

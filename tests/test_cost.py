@@ -69,7 +69,7 @@ def test_kernel_matches_the_written_out_measure():
     bands = feature_bands(image)
     shifts = channel_shifts(APERTURE)
     candidates = np.array([-2.5, -0.75, 0.0, 1.3, 4.0])
-    volume = cost_volume(stack_bands(bands), APERTURE, candidates, 7, 2e-3)
+    volume = cost_volume(stack_bands(bands), APERTURE, candidates, 7, 2e-3, sampling="bspline")
     for k, d in enumerate(candidates):
         expected = reference_cost(bands, shifts, float(d), 7, 2e-3)
         assert np.abs(volume[k] - expected).max() < 2e-4, d
@@ -80,6 +80,8 @@ def test_per_pixel_maps_equal_the_volume_at_constant_disparity():
     volume = cost_volume(bands, APERTURE, np.array([-1.25, 0.5, 2.0]), 9, 2e-3)
     maps = np.stack([np.full((40, 50), d, np.float32) for d in (-1.25, 0.5, 2.0)])
     assert np.allclose(cost_at(bands, APERTURE, maps, 9, 2e-3), volume, atol=1e-5)
+    spline = cost_volume(bands, APERTURE, np.array([-1.25, 0.5, 2.0]), 9, 2e-3, sampling="bspline")
+    assert np.allclose(cost_at(bands, APERTURE, maps, 9, 2e-3, sampling="bspline"), spline, atol=1e-5)
 
 
 def test_bilinear_volume_matches_the_written_out_measure():
@@ -130,6 +132,6 @@ def test_sensor_noise_does_not_pull_the_minimum_to_half_pixel_samples(truth):
     image = render_layers([(sharp, np.ones((160, 200), np.float32), truth)], (160, 200), APERTURE)
     noisy = np.clip(image + rng.normal(0.0, 0.04, image.shape).astype(np.float32), 1e-3, None)
     candidates = np.arange(truth - 1.5, truth + 1.51, 0.05)
-    volume = cost_volume(stack_bands(feature_bands(noisy)), APERTURE, candidates, 9, 2e-3)
+    volume = cost_volume(stack_bands(feature_bands(noisy)), APERTURE, candidates, 9, 2e-3, sampling="bspline")
     curve = volume[:, 20:-20, 20:-20].mean(axis=(1, 2))
     assert abs(candidates[int(np.argmin(curve))] - truth) <= 0.1
