@@ -57,15 +57,14 @@ def _bspline(img: np.ndarray, y: float, x: float) -> float:
     x0 = int(np.floor(x))
     wy0, wy1, wy2, wy3 = _bspline_weights(y - y0)
     wx0, wx1, wx2, wx3 = _bspline_weights(x - x0)
+    xa = min(max(x0 - 1, 0), w - 1)
+    xb = min(max(x0, 0), w - 1)
+    xc = min(max(x0 + 1, 0), w - 1)
+    xd = min(max(x0 + 2, 0), w - 1)
     total = 0.0
     for j in range(4):
-        yy = min(max(y0 - 1 + j, 0), h - 1)
+        row = img[min(max(y0 - 1 + j, 0), h - 1)]
         wy = wy0 if j == 0 else (wy1 if j == 1 else (wy2 if j == 2 else wy3))
-        row = img[yy]
-        xa = min(max(x0 - 1, 0), w - 1)
-        xb = min(max(x0, 0), w - 1)
-        xc = min(max(x0 + 1, 0), w - 1)
-        xd = min(max(x0 + 2, 0), w - 1)
         total += wy * (wx0 * row[xa] + wx1 * row[xb] + wx2 * row[xc] + wx3 * row[xd])
     return total
 
@@ -146,6 +145,18 @@ def _sample_row_bilinear(src: np.ndarray, y: int, sx: float, sy: float, out: np.
 
 
 @nb.njit(cache=True, fastmath=True, inline="always")
+def _sample_row_shifted(
+    src: np.ndarray, y: int, sx: float, sy: float, out: np.ndarray, tmp: np.ndarray, bspline: bool
+) -> None:
+    """out[x] = src sampled at (x + sx, y + sy) through the cubic B-spline (`tmp`: its scratch row) or
+    bilinearly."""
+    if bspline:
+        _sample_row(src, y, sx, sy, out, tmp)
+    else:
+        _sample_row_bilinear(src, y, sx, sy, out)
+
+
+@nb.njit(cache=True, fastmath=True, inline="always")
 def _sample_row_map(
     src: np.ndarray, y: int, disparity_row: np.ndarray, sx: float, sy: float, out: np.ndarray, bspline: bool
 ) -> None:
@@ -193,18 +204,9 @@ def _cost_map(bands, shifts, d, disparity, radius, eps, out, bspline):
                     _sample_row_map(bands[b, 1], y, disparity[y], shifts[1, 0], shifts[1, 1], gg, bspline)
                     _sample_row_map(bands[b, 2], y, disparity[y], shifts[2, 0], shifts[2, 1], bb, bspline)
                 else:
-                    if bspline:
-                        _sample_row(bands[b, 0], y, d * shifts[0, 0], d * shifts[0, 1], rr, tmp)
-                    else:
-                        _sample_row_bilinear(bands[b, 0], y, d * shifts[0, 0], d * shifts[0, 1], rr)
-                    if bspline:
-                        _sample_row(bands[b, 1], y, d * shifts[1, 0], d * shifts[1, 1], gg, tmp)
-                    else:
-                        _sample_row_bilinear(bands[b, 1], y, d * shifts[1, 0], d * shifts[1, 1], gg)
-                    if bspline:
-                        _sample_row(bands[b, 2], y, d * shifts[2, 0], d * shifts[2, 1], bb, tmp)
-                    else:
-                        _sample_row_bilinear(bands[b, 2], y, d * shifts[2, 0], d * shifts[2, 1], bb)
+                    _sample_row_shifted(bands[b, 0], y, d * shifts[0, 0], d * shifts[0, 1], rr, tmp, bspline)
+                    _sample_row_shifted(bands[b, 1], y, d * shifts[1, 0], d * shifts[1, 1], gg, tmp, bspline)
+                    _sample_row_shifted(bands[b, 2], y, d * shifts[2, 0], d * shifts[2, 1], bb, tmp, bspline)
                 for x in range(w):
                     ring[slot, 0, x] += rr[x] * rr[x]
                     ring[slot, 1, x] += gg[x] * gg[x]
