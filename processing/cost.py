@@ -10,18 +10,22 @@ channel, so objects of any colour align. It is evaluated on zero-mean band-pass 
 Geometry: for a candidate disparity d of the widest filter pair, channel c is sampled at x + d s_c, where
 s_c = `FilterAperture.shift_per_disparity(c)` (px of channel displacement per px of disparity).
 
-Sampling: bilinear (the pipeline's default, `DenseParams.sampling`) or through the cubic B-spline (4 x 4
-taps). Interpolating averages neighbouring pixels' noise: bilinear sampling halfway between pixels halves the
-noise variance, so with white sensor noise in every channel the channels correlate best where they all fall
-between pixels, and the minimum is pulled towards those disparities (odd red-blue disparities for the paper's
-aperture; up to 0.4 px on the rendered real scenes, full-colour images with white noise at every pixel). The
-B-spline's noise gain is 0.46-0.50 at every offset. On those renders (tuning part) it lowered bad-0.5 from
-27.0 to 23.6 % and the worst scene's bad-1 from 21.3 to 19.3 %; held-out: worst 28.3 -> 25.7 %, median
-8.8 -> 9.2 %. But real input has no white noise per channel: Bayer planes are interpolated a quarter pixel
-(`pipeline.align_channel_samples`), demosaiced photographs more. There the B-spline did worse: the
-simulator's paper scenes (CR2) 1.3 -> 1.8 % median object error, paper-f's in-focus object 1.4 -> 6.6 mm at
-quarter size, and on Bando's dog photograph (at the lowest supported library versions) the dog joined the
-wall. Bilinear stays the default; the region refinement always samples bilinearly.
+Sampling and noise: interpolating averages neighbouring pixels' noise. Bilinear sampling halfway between pixels
+halves the variance of white noise, so with sensor noise in every channel the channels correlate best where they
+all fall between pixels, and the minimum is pulled towards those disparities (odd red-blue disparities for the
+paper's aperture; up to 0.4 px on the rendered real scenes). The signal, smoother than the noise, loses less. With
+a noise model (`features.FeatureNoise`: each channel's noise variance per pixel, measured from the capture
+itself, and how the feature bands filter it) each channel's window variance gets back what its samples lost
+beyond what their signal lost (`_noise_deficit`): the noise keeps the share of the signal it had before sampling,
+at every disparity, and the pull is gone. The pipeline does this by default (`DenseParams.noise_model`,
+`RefineParams.noise_model`). On the rendered real scenes (tuning part) it lowered bad-0.5 from 27.1 to 24.1 %
+and the relative depth error from 9.0 to 8.0 %, and left the simulator's paper scenes (CR2) as they were (median
+object error 1.34 -> 1.38 %, in-focus object 1.5 -> 1.6 mm).
+
+The cubic B-spline (4 x 4 taps, `sampling="bspline"`) is the other way to an even noise gain (0.46-0.50 at every
+offset); it is an option, not the default: it smooths the signal by an amount that depends on the offset too, and
+on the paper scenes it did worse (median object error 2.5 % with the noise model, 3.5 % without; the in-focus
+object 2.3 mm off), while on the full-colour renders it did a little better (tuning bad-0.5 21.6 %).
 
 Both kernels are compiled with numba (pure numpy would spend seconds per megapixel here): the box sums are
 running sums over a ring buffer of rows, so one candidate costs one pass over the image.
@@ -33,6 +37,7 @@ import numba as nb
 import numpy as np
 
 from mca.processing.camera import CHANNELS, FilterAperture
+from mca.processing.features import FeatureNoise
 
 
 def channel_shifts(aperture: FilterAperture) -> np.ndarray:
@@ -170,14 +175,89 @@ def _sample_row_map(
             out[x] = _bilinear(src, y + dd * sy, x + dd * sx)
 
 
+@nb.njit(cache=True, fastmath=True, inline="always")
+def _axis_gain(t: float, rho: np.ndarray, bspline: bool) -> float:
+    """Noise variance gain of sampling at fraction t along one axis, for noise correlating rho[lag - 1] at lags
+    1..3: the sum over tap pairs of w_i w_j rho(|i - j|)."""
+    if bspline:
+        w0, w1, w2, w3 = _bspline_weights(t)
+        return (
+            w0 * w0
+            + w1 * w1
+            + w2 * w2
+            + w3 * w3
+            + 2.0 * rho[0] * (w0 * w1 + w1 * w2 + w2 * w3)
+            + 2.0 * rho[1] * (w0 * w2 + w1 * w3)
+            + 2.0 * rho[2] * (w0 * w3)
+        )
+    return (1.0 - t) * (1.0 - t) + t * t + 2.0 * rho[0] * t * (1.0 - t)
+
+
+@nb.njit(cache=True, fastmath=True, inline="always")
+def _noise_deficit(sx, sy, gain, rho, signal_rho, bspline):
+    """How much noise variance (per unit of pixel noise variance, summed over the bands) a sample at offset
+    (sx, sy) lacks for its noise to keep the ratio to its signal it had before sampling: interpolation averages
+    noise down more than the smoother signal. `signal_rho` is this channel's (B, 2, 3)."""
+    tx = sx - np.floor(sx)
+    ty = sy - np.floor(sy)
+    total = 0.0
+    for b in range(gain.shape[0]):
+        kept = _axis_gain(tx, signal_rho[b, 0], bspline) * _axis_gain(ty, signal_rho[b, 1], bspline)
+        total += gain[b] * (kept - _axis_gain(tx, rho[b, 0], bspline) * _axis_gain(ty, rho[b, 1], bspline))
+    return total
+
+
+_DEFICIT_STEPS = 64  # per-pixel shifts: the deficit is looked up at 1/64 px of fractional offset
+
+
 @nb.njit(cache=True, fastmath=True)
-def _cost_map(bands, shifts, d, disparity, radius, eps, out, bspline):
+def _deficit_table(gain, rho, signal_rho, bspline):
+    """(3, S + 1, S + 1): `_noise_deficit` of each channel at fractional offsets (i / S, j / S)."""
+    steps = _DEFICIT_STEPS
+    table = np.empty((3, steps + 1, steps + 1))
+    for c in range(3):
+        for i in range(steps + 1):
+            for j in range(steps + 1):
+                table[c, i, j] = _noise_deficit(i / steps, j / steps, gain, rho, signal_rho[:, c], bspline)
+    return table
+
+
+@nb.njit(cache=True, fastmath=True, inline="always")
+def _add_noise_deficit(ring_row, variance, y, sx, sy, d_row, per_pixel, deficit, table):
+    """ring_row[x] += the noise variance that channel `variance` (H, W) lacks in its sample for pixel (x, y),
+    shifted by (sx, sy) (times d_row[x] when per_pixel): the sampled pixel's variance times its deficit,
+    `deficit` for a uniform shift, looked up in `table` (S + 1, S + 1) per pixel."""
+    h, w = variance.shape
+    if not per_pixel:
+        yi = min(max(int(np.floor(y + sy + 0.5)), 0), h - 1)
+        shift = int(np.floor(sx + 0.5))
+        for x in range(w):
+            ring_row[x] += deficit * variance[yi, min(max(x + shift, 0), w - 1)]
+    else:
+        steps = _DEFICIT_STEPS
+        for x in range(w):
+            dx = d_row[x] * sx
+            dy = d_row[x] * sy
+            fx = np.floor(dx)
+            fy = np.floor(dy)
+            yi = min(max(int(y + fy + (dy - fy >= 0.5)), 0), h - 1)
+            xi = min(max(int(x + fx + (dx - fx >= 0.5)), 0), w - 1)
+            ring_row[x] += table[int((dx - fx) * steps + 0.5), int((dy - fy) * steps + 0.5)] * variance[yi, xi]
+
+
+@nb.njit(cache=True, fastmath=True)
+def _cost_map(bands, shifts, d, disparity, radius, eps, out, bspline, variance, gain, rho, signal_rho):
     """Colour-line cost of every pixel (window (2 radius + 1)^2, clamped at the borders) with the channels
     sampled at x + d s_c, d the scalar `d` or, when `disparity` has rows, the per-pixel map; into `out` (h, w).
 
     One pass over the rows: each row's six products (rr, gg, bb, rg, rb, gb, pooled over the bands) go into a
     ring buffer of the window's rows; column sums are updated as rows enter and leave, and a running sum
-    along each row gives the window sums."""
+    ring along each row gives the window sums.
+
+    With a noise model (`variance` (3, H, W) per-pixel noise variance of each channel, `gain` (B,) and `rho`
+    (B, 2, 3) of the bands, `features.FeatureNoise`; `variance` empty for none), each channel's variance in
+    the window gets back the noise its samples lost by interpolation (`_noise_deficit`), so that the cost's
+    noise term is the same at every disparity."""
     nbands, _, h, w = bands.shape
     win = 2 * radius + 1
     ring = np.zeros((win, 6, w), np.float32)
@@ -188,6 +268,15 @@ def _cost_map(bands, shifts, d, disparity, radius, eps, out, bspline):
     bb = np.empty(w, np.float32)
     tmp = np.empty(w, np.float32)
     per_pixel = disparity.shape[0] > 0
+    noisy = variance.shape[0] > 0
+    uniform = np.zeros(3)
+    table = np.zeros((3, 1, 1))
+    if noisy:
+        if per_pixel:
+            table = _deficit_table(gain, rho, signal_rho, bspline)
+        else:
+            for c in range(3):
+                uniform[c] = _noise_deficit(d * shifts[c, 0], d * shifts[c, 1], gain, rho, signal_rho[:, c], bspline)
     for y in range(h + radius):
         slot = y % win
         if y >= win:
@@ -214,6 +303,20 @@ def _cost_map(bands, shifts, d, disparity, radius, eps, out, bspline):
                     ring[slot, 3, x] += rr[x] * gg[x]
                     ring[slot, 4, x] += rr[x] * bb[x]
                     ring[slot, 5, x] += gg[x] * bb[x]
+            if noisy:
+                for c in range(3):
+                    row = disparity[y] if per_pixel else rr  # rr: a row of the right type, unused
+                    _add_noise_deficit(
+                        ring[slot, c],
+                        variance[c],
+                        y,
+                        shifts[c, 0] if per_pixel else d * shifts[c, 0],
+                        shifts[c, 1] if per_pixel else d * shifts[c, 1],
+                        row,
+                        per_pixel,
+                        uniform[c],
+                        table[c],
+                    )
             for c in range(6):
                 for x in range(w):
                     col[c, x] += ring[slot, c, x]
@@ -250,26 +353,44 @@ def _cost_map(bands, shifts, d, disparity, radius, eps, out, bspline):
 
 @nb.njit(cache=True, parallel=True)
 def _volume(
-    bands: np.ndarray, shifts: np.ndarray, candidates: np.ndarray, radius: int, eps: float, bspline: bool
+    bands: np.ndarray,
+    shifts: np.ndarray,
+    candidates: np.ndarray,
+    radius: int,
+    eps: float,
+    bspline: bool,
+    variance: np.ndarray,
+    gain: np.ndarray,
+    rho: np.ndarray,
+    signal_rho: np.ndarray,
 ) -> np.ndarray:
     _, _, h, w = bands.shape
     count = candidates.shape[0]
     out = np.empty((count, h, w), np.float32)
     none = np.zeros((0, w), np.float32)
     for k in nb.prange(count):
-        _cost_map(bands, shifts, candidates[k], none, radius, eps, out[k], bspline)
+        _cost_map(bands, shifts, candidates[k], none, radius, eps, out[k], bspline, variance, gain, rho, signal_rho)
     return out
 
 
 @nb.njit(cache=True, parallel=True)
 def _at_maps(
-    bands: np.ndarray, shifts: np.ndarray, disparities: np.ndarray, radius: int, eps: float, bspline: bool
+    bands: np.ndarray,
+    shifts: np.ndarray,
+    disparities: np.ndarray,
+    radius: int,
+    eps: float,
+    bspline: bool,
+    variance: np.ndarray,
+    gain: np.ndarray,
+    rho: np.ndarray,
+    signal_rho: np.ndarray,
 ) -> np.ndarray:
     _, _, h, w = bands.shape
     count = disparities.shape[0]
     out = np.empty((count, h, w), np.float32)
     for k in nb.prange(count):
-        _cost_map(bands, shifts, 0.0, disparities[k], radius, eps, out[k], bspline)
+        _cost_map(bands, shifts, 0.0, disparities[k], radius, eps, out[k], bspline, variance, gain, rho, signal_rho)
     return out
 
 
@@ -279,6 +400,24 @@ def stack_bands(bands: list[np.ndarray]) -> np.ndarray:
 
 
 SAMPLINGS = ("bspline", "bilinear")
+
+
+def _noise_arrays(
+    noise: FeatureNoise | None, bands: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    if noise is None:
+        return np.zeros((0, 1, 1), np.float32), np.zeros(1), np.zeros((1, 2, 3)), np.zeros((1, 3, 2, 3))
+    if noise.variance.shape != (3,) + bands.shape[2:] or noise.band_gain.shape[0] != bands.shape[0]:
+        raise ValueError(
+            f"the noise model ({noise.variance.shape}, {noise.band_gain.shape[0]} bands) is not of these bands "
+            f"({bands.shape})"
+        )
+    return (
+        np.ascontiguousarray(noise.variance, np.float32),
+        np.asarray(noise.band_gain, np.float64),
+        np.ascontiguousarray(noise.band_rho, np.float64),
+        np.ascontiguousarray(noise.signal_rho, np.float64),
+    )
 
 
 def _check_sampling(sampling: str) -> bool:
@@ -294,12 +433,14 @@ def cost_volume(
     window_px: int,
     noise_floor: float,
     sampling: str = "bilinear",
+    noise: FeatureNoise | None = None,
 ) -> np.ndarray:
     """(D, H, W) float32 colour-line cost of every pixel at every candidate disparity (px of these planes).
 
     `bands` (B, 3, H, W) from `stack_bands`; `noise_floor` is the band-pass amplitude treated as flat (it
     regularises the correlations of windows with nothing to align); `sampling` "bspline" or "bilinear" (see
-    the module docstring for which to use when)."""
+    the module docstring for which to use when); `noise` (`features.feature_noise` of the planes the bands are
+    of) takes out the noise bias of sampling (module docstring)."""
     return _volume(
         bands,
         channel_shifts(aperture),
@@ -307,6 +448,7 @@ def cost_volume(
         int(window_px) // 2,
         float(noise_floor) ** 2,
         _check_sampling(sampling),
+        *_noise_arrays(noise, bands),
     )
 
 
@@ -317,12 +459,21 @@ def cost_at(
     window_px: int,
     noise_floor: float,
     sampling: str = "bilinear",
+    noise: FeatureNoise | None = None,
 ) -> np.ndarray:
     """Colour-line cost of every pixel at per-pixel disparities: (K, H, W) maps in, (K, H, W) costs out.
 
-    `sampling` "bilinear" or "bspline", as for `cost_volume` (see the module docstring)."""
+    `sampling` and `noise` as for `cost_volume` (see the module docstring)."""
     bspline = _check_sampling(sampling)
     maps = np.ascontiguousarray(disparity_maps_px, dtype=np.float32)
     if maps.ndim == 2:
         maps = maps[None]
-    return _at_maps(bands, channel_shifts(aperture), maps, int(window_px) // 2, float(noise_floor) ** 2, bspline)
+    return _at_maps(
+        bands,
+        channel_shifts(aperture),
+        maps,
+        int(window_px) // 2,
+        float(noise_floor) ** 2,
+        bspline,
+        *_noise_arrays(noise, bands),
+    )

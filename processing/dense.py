@@ -25,7 +25,7 @@ import numpy as np
 
 from mca.processing.camera import FilterAperture
 from mca.processing.cost import cost_volume, stack_bands
-from mca.processing.features import display_gamma, feature_bands
+from mca.processing.features import display_gamma, feature_bands, feature_noise
 from mca.processing.sgm import aggregate
 
 _PATHS = 8  # semi-global aggregation paths: an isolated jump costs about this many P2
@@ -45,6 +45,7 @@ class DenseParams:
     narrow_range: bool = True  # find the occupied range on a quarter-size image first
     range_margin_px: float = 2.0  # kept around the occupied range
     sampling: str = "bilinear"  # the cost's sampler, "bilinear" or "bspline" (`processing.cost` says when which)
+    noise_model: bool = True  # measure the sensor noise and take its sampling bias out of the cost (`processing.cost`)
 
 
 @dataclass
@@ -63,8 +64,14 @@ def candidate_disparities(range_px: tuple[float, float], step_px: float) -> np.n
     return (np.arange(np.floor(low / step_px), np.ceil(high / step_px) + 1) * step_px).astype(np.float64)
 
 
-def _volume_hwd(bands: np.ndarray, aperture: FilterAperture, candidates: np.ndarray, params: DenseParams) -> np.ndarray:
-    return cost_volume(bands, aperture, candidates, params.window_px, params.noise_floor, params.sampling)
+def _volume_hwd(
+    planes: np.ndarray, aperture: FilterAperture, candidates: np.ndarray, params: DenseParams
+) -> np.ndarray:
+    bands = feature_bands(planes)
+    noise = feature_noise(planes, bands) if params.noise_model else None
+    return cost_volume(
+        stack_bands(bands), aperture, candidates, params.window_px, params.noise_floor, params.sampling, noise
+    )
 
 
 def _upsampled(volume_dhw: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -126,7 +133,7 @@ def occupied_range(
     candidates = candidate_disparities((range_px[0] / 4.0, range_px[1] / 4.0), params.step_px)
     if len(candidates) < 4:
         return range_px
-    volume = _volume_hwd(stack_bands(feature_bands(small)), aperture, candidates, params)
+    volume = _volume_hwd(small, aperture, candidates, params)
     aggregated = aggregate(
         np.ascontiguousarray(volume.transpose(1, 2, 0)), display_gamma(small).mean(axis=2), params.p1, params.p2
     )
@@ -144,10 +151,10 @@ def estimate_dense(
     h, w = planes.shape[:2]
     search = occupied_range(planes, aperture, range_px, params) if params.narrow_range else range_px
     candidates = candidate_disparities(search, params.step_px)
-    volume = _volume_hwd(stack_bands(feature_bands(planes)), aperture, candidates, params)
+    volume = _volume_hwd(planes, aperture, candidates, params)
     if params.coarse_weight > 0 and min(h, w) >= 32:
         half = cv2.pyrDown(planes)
-        coarse = _volume_hwd(stack_bands(feature_bands(half)), aperture, candidates / 2.0, params)
+        coarse = _volume_hwd(half, aperture, candidates / 2.0, params)
         volume += np.float32(params.coarse_weight) * _upsampled(coarse, (h, w))
         volume *= np.float32(1.0 / (1.0 + params.coarse_weight))
     scale = params.step_px / 0.5  # penalties are given for 0.5 px steps

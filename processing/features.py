@@ -9,6 +9,8 @@ cost use uncentred correlations; the fine blur band-limits the planes for sampli
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
@@ -27,7 +29,11 @@ def feature_bands(
 ) -> list[np.ndarray]:
     """Three (H, W, 3) float32 zero-mean feature planes of linear colour planes: d/dx and d/dy of the
     log planes smoothed by `gradient_sigma_px`, and their difference of Gaussians at `dog_sigmas_px`."""
-    log = log_compress(planes)
+    return _band_filters(log_compress(planes), gradient_sigma_px, dog_sigmas_px)
+
+
+def _band_filters(log: np.ndarray, gradient_sigma_px: float, dog_sigmas_px: tuple[float, float]) -> list[np.ndarray]:
+    """The linear part of `feature_bands`, applied to (H, W, C) log planes."""
     gx = np.empty_like(log)
     gy = np.empty_like(log)
     dog = np.empty_like(log)
@@ -40,6 +46,109 @@ def feature_bands(
         coarse = cv2.GaussianBlur(plane, (0, 0), dog_sigmas_px[1], borderType=cv2.BORDER_REFLECT)
         dog[..., c] = fine - coarse
     return [gx, gy, dog]
+
+
+@dataclass(frozen=True)
+class FeatureNoise:
+    """The sensor noise as the feature planes carry it, beside their signal, for `processing.cost` to take out
+    the part of the cost that depends on how sampling averages noise and signal differently.
+
+    `variance` (3, H, W) float32 is each channel's noise variance at each pixel of its log plane; a band's noise
+    variance is that times `band_gain[b]`. A band's noise correlates with itself `band_rho[b, axis, lag - 1]` at
+    lags 1..3 along x (axis 0) and y (axis 1), its signal (the band less its noise, over the whole image)
+    `signal_rho[b, channel, axis, lag - 1]`."""
+
+    variance: np.ndarray
+    band_gain: np.ndarray  # (B,) float64
+    band_rho: np.ndarray  # (B, 2, 3) float64
+    signal_rho: np.ndarray  # (B, 3, 2, 3) float64
+
+
+def feature_noise(
+    planes: np.ndarray,
+    bands: list[np.ndarray] | None = None,
+    gradient_sigma_px: float = 0.7,
+    dog_sigmas_px: tuple[float, float] = (0.6, 1.5),
+) -> FeatureNoise:
+    """The noise of `feature_bands(planes, ...)` (`FeatureNoise`); `bands`, if given, must be those planes.
+
+    Per channel, the noise of the log plane is measured where it shows least mixed with structure: in the
+    diagonal Haar detail (a - b - c + d) / 2 of 2 x 2 blocks, whose variance is the pixel noise variance for
+    white noise, averaged over the 16 blocks of 8 x 8 patches. Noise depends on brightness (photon noise; the log
+    compresses bright values), so the patches are binned by brightness and each bin's variance is taken from its
+    quietest patches (the 10th percentile, 0.582 of the variance for Gaussian noise: at least a tenth of a
+    bin's patches must be free of fine structure, and texture can only raise the estimate); a pixel's variance
+    is interpolated from its brightness. The bands' noise gains and correlations are their filters' response to
+    white noise (their impulse response); their signal's correlations are the bands' own, less the noise's
+    share."""
+    log = log_compress(planes)
+    h, w = log.shape[:2]
+    variance = np.empty((3, h, w), np.float32)
+    for c in range(3):
+        variance[c] = _brightness_noise(np.ascontiguousarray(log[..., c]))
+    gain, rho = _band_noise_response(gradient_sigma_px, dog_sigmas_px)
+    if bands is None:
+        bands = _band_filters(log, gradient_sigma_px, dog_sigmas_px)
+    signal_rho = np.empty((len(bands), 3, 2, 3))
+    for b, band in enumerate(bands):
+        for c in range(3):
+            x = band[..., c].astype(np.float64)
+            total = float(np.mean(x * x))
+            noise = float(np.mean(variance[c])) * gain[b]
+            signal = total - noise
+            for lag in (1, 2, 3):
+                for axis, (ahead, behind) in enumerate(((x[:, lag:], x[:, :-lag]), (x[lag:], x[:-lag]))):
+                    if signal <= 0.1 * total:  # (nearly) nothing but noise: no signal to keep in step with
+                        signal_rho[b, c, axis, lag - 1] = rho[b, axis, lag - 1]
+                        continue
+                    together = float(np.mean(ahead * behind))
+                    value = (together - rho[b, axis, lag - 1] * noise) / signal
+                    signal_rho[b, c, axis, lag - 1] = min(max(value, -1.0), 1.0)
+    return FeatureNoise(variance, gain, rho, signal_rho)
+
+
+def _brightness_noise(log_plane: np.ndarray, bins: int = 12) -> np.ndarray:
+    h, w = log_plane.shape
+    even = log_plane[: h // 8 * 8, : w // 8 * 8].astype(np.float64)
+    a, b = even[0::2, 0::2], even[0::2, 1::2]
+    c, d = even[1::2, 0::2], even[1::2, 1::2]
+    # per 8 x 8 patch: the mean square of its 16 diagonal details, and its mean level
+    energy = ((a - b - c + d) * 0.5) ** 2
+    hq, wq = energy.shape[0] // 4, energy.shape[1] // 4
+    if hq * wq < 10 * bins:
+        return np.zeros((h, w), np.float32)
+    patch_energy = energy.reshape(hq, 4, wq, 4).mean(axis=(1, 3)).ravel()
+    level = ((a + b + c + d) * 0.25).reshape(hq, 4, wq, 4).mean(axis=(1, 3)).ravel()
+    edges = np.quantile(level, np.linspace(0.0, 1.0, bins + 1))
+    which = np.clip(np.searchsorted(edges, level, side="right") - 1, 0, bins - 1)
+    centres = np.empty(bins)
+    spread = np.empty(bins)
+    for k in range(bins):
+        inside = which == k
+        centres[k] = float(np.median(level[inside])) if inside.any() else float(edges[k])
+        spread[k] = float(np.quantile(patch_energy[inside], 0.1)) / _CHI2_16_Q10 if inside.any() else 0.0
+    smooth = cv2.GaussianBlur(log_plane, (0, 0), 1.0, borderType=cv2.BORDER_REFLECT)
+    return np.interp(smooth, centres, spread).astype(np.float32)
+
+
+_CHI2_16_Q10 = 0.58201  # the 10th percentile of a chi-square with 16 degrees of freedom, over 16
+
+
+def _band_noise_response(gradient_sigma_px: float, dog_sigmas_px: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    size = 41
+    impulse = np.zeros((size, size, 1), np.float32)
+    impulse[size // 2, size // 2, 0] = 1.0
+    responses = _band_filters(impulse, gradient_sigma_px, dog_sigmas_px)
+    gain = np.empty(len(responses))
+    rho = np.empty((len(responses), 2, 3))
+    for b, response in enumerate(responses):
+        kernel = response[..., 0].astype(np.float64)
+        energy = float(np.sum(kernel * kernel))
+        gain[b] = energy
+        for lag in (1, 2, 3):
+            rho[b, 0, lag - 1] = float(np.sum(kernel[:, lag:] * kernel[:, :-lag])) / energy
+            rho[b, 1, lag - 1] = float(np.sum(kernel[lag:] * kernel[:-lag])) / energy
+    return gain, rho
 
 
 def texture_energy(bands: list[np.ndarray], window_px: int) -> np.ndarray:

@@ -25,6 +25,7 @@ The paper's steps (sections IV-V), each a stage reported to the recorder under t
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
@@ -36,13 +37,13 @@ from mca.processing.cost import stack_bands
 from mca.processing.dense import DenseDisparity, DenseParams, estimate_dense
 from mca.processing.depth import depth_map_mm, region_depth
 from mca.processing.disparity import parallel_map, warp_channels
-from mca.processing.features import display_gamma, feature_bands, texture_energy
+from mca.processing.features import display_gamma, feature_bands, feature_noise, texture_energy
 from mca.processing.mpi import all_in_focus, multi_plane_images
 from mca.processing.optics import MCAOptics
 from mca.processing.refine import Refinement, RefineParams, refine_regions
 from mca.processing.result import DepthResult, NullRecorder, Recorder, Region
 from mca.processing.sketch import Sketch, SketchParams, SketchRegion, build_sketch
-from mca.processing.surfaces import SurfaceParams, build_surfaces, plane_map
+from mca.processing.surfaces import SurfaceParams, Surfaces, build_surfaces, plane_map
 
 # Position of each channel's samples relative to the centre of its 2x2 RGGB block, in half-resolution
 # (processing) pixels, for planes taken straight from an RGGB mosaic: red at (0, 0), the mean of the two
@@ -204,131 +205,221 @@ def run_pipeline(
     filter pair in input-image pixels, + = farther than focus; `optics` (with the input pixel pitch)
     turns them into depths, without it depths stay None. See the module docstring for the stages.
     """
-    recorder = recorder if recorder is not None else NullRecorder()
-    timer = _Timer(recorder)
     if planes.ndim != 3 or planes.shape[2] != 3:
         raise ValueError(f"planes must be (H, W, 3), got shape {planes.shape}")
-    planes = np.ascontiguousarray(planes, dtype=np.float32)
-    height, width = planes.shape[:2]
-    total_start = time.perf_counter()
-
-    with timer.stage("planes"):
-        if channel_offsets_px is not None:
-            planes = align_channel_samples(planes, channel_offsets_px)
-        recorder.record("planes", planes=planes, pixel_scale=pixel_scale)
-
-    with timer.stage("disparity"):
-        small, factor = _analysis_grid(planes, params.analysis_max_side_px)
-        to_input = float(factor * pixel_scale)  # input px per analysis px
-        range_in = disparity_range_px or default_disparity_range_px(
-            aperture, optics, (int(height * pixel_scale), int(width * pixel_scale))
-        )
-        range_an = (range_in[0] / to_input, range_in[1] / to_input)
-        dense = estimate_dense(small, aperture, range_an, params.dense)
-        recorder.record(
-            "disparity",
-            disparity_px=dense.disparity_px * np.float32(to_input),
-            confidence=dense.confidence,
-            analysis_scale=float(factor),
-            search_range_px=(dense.search_range_px[0] * to_input, dense.search_range_px[1] * to_input),
-        )
-
-    with timer.stage("surfaces"):
-        aligned = display_gamma(warp_channels(small, aperture, dense.disparity_px))
-        surfaces = build_surfaces(
-            aligned, dense.disparity_px, params.surfaces, evidence=_evidence(small, dense, params.evidence)
-        )
-        recorder.record("surfaces", labels=surfaces.labels, count=surfaces.count)
-
-    with timer.stage("sketch"):
-        surface_disparity = surfaces.disparity()
-        sketch = build_sketch(surfaces, surface_disparity, dense.confidence, params.sketch)
-        focus_id = _focus_region(sketch, params.sketch.focus_tolerance_px, to_input)
-        recorder.record(
-            "sketch",
-            labels=sketch.labels,
-            aligned=aligned,
-            region_count=len(sketch.regions),
-            focus_region=focus_id,
-            order=sketch.order,
-            occludes=sketch.occludes,
-        )
-
-    with timer.stage("refine"):
-        refinement = (
-            _no_refinement(sketch, surface_disparity)
-            if params.refine is None
-            else refine_regions(
-                stack_bands(feature_bands(small)), aperture, sketch.labels, surface_disparity, params.refine
-            )
-        )
-        sketch = _refined_sketch(sketch, refinement, params.sketch.slant_px)
-        recorder.record(
-            "refine",
-            disparity_px={r.id: r.disparity_px * to_input for r in sketch.regions},
-            planar={i: p is not None for i, p in refinement.planes.items()},
-            offset_px=refinement.offsets_px,
-        )
-
-    with timer.stage("boundaries"):
-        region_labels = sketch.labels
-        if params.boundaries is not None:
-            region_labels = snap_boundaries(
-                small, aperture, sketch.labels, _region_models(sketch, refinement.disparity_px), params.boundaries
-            )
-        recorder.record("boundaries", labels=region_labels, changed_px=int((region_labels != sketch.labels).sum()))
-
-    with timer.stage("depth"):
-        superpixels_full = _upsample_labels(surfaces.labels, factor, (height, width))
-        labels16 = sketch.superpixel_region[superpixels_full].astype(np.uint16)
-        model_proc = _model_at_processing(surfaces, sketch, refinement, superpixels_full, labels16, factor)
-        if region_labels is not sketch.labels:
-            snapped = _upsample_labels(region_labels, factor, (height, width)).astype(np.uint16)
-            moved = snapped != labels16
-            if moved.any():
-                plane_of = np.zeros((max([int(snapped.max())] + [r.id for r in sketch.regions]) + 1, 3))
-                for r in sketch.regions:
-                    plane_of[r.id] = rescale_plane(r.plane, factor) if factor > 1 else r.plane
-                model_proc[moved] = plane_map(snapped.astype(np.int32), plane_of)[moved]
-            labels16 = snapped
-        model_in = model_proc * np.float32(pixel_scale)
-        depth = depth_map_mm(model_in, optics) if optics is not None else None
-        raw_in = _upsample(dense.disparity_px, (height, width)) * np.float32(to_input)
-        confidence_full = _upsample(dense.confidence, (height, width))
-        regions = _regions(sketch, optics, factor, pixel_scale, focus_id)
-        record_items: dict[str, object] = dict(labels=labels16, disparity_px=model_in, regions=regions)
-        if depth is not None:
-            record_items["depth_mm"] = depth
-        recorder.record("depth", **record_items)
-
-    with timer.stage("all_in_focus"):
-        sharp = all_in_focus(planes, aperture, model_proc)
-        recorder.record("all_in_focus", image=sharp)
-    with timer.stage("mpi"):
-        by_id = {r.id: r for r in regions}
-        layers = multi_plane_images(
-            sharp,
-            labels16,
-            [r.id for r in regions],
-            {i: by_id[i].disparity_px for i in by_id},
-            {i: by_id[i].inter_image_depth_mm for i in by_id},
-            {i: by_id[i].inter_object_depth_mm for i in by_id},
-        )
-        recorder.record("mpi", layers=layers)
-    timer.timings["total"] = time.perf_counter() - total_start
-    return DepthResult(
-        labels=labels16,
-        disparity_px=model_in,
-        raw_disparity_px=raw_in,
-        confidence=confidence_full,
-        depth_mm=depth,
-        all_in_focus=sharp,
-        regions=regions,
-        focus_region=focus_id,
-        layers=layers,
-        pixel_scale=pixel_scale,
-        timings_s=timer.timings,
+    run = _Run(
+        np.ascontiguousarray(planes, dtype=np.float32),
+        aperture,
+        optics,
+        pixel_scale,
+        disparity_range_px,
+        recorder if recorder is not None else NullRecorder(),
+        channel_offsets_px,
+        params,
     )
+    started = time.perf_counter()
+    for name, stage in _STAGES:
+        with run.timer.stage(name):
+            stage(run)
+    run.timer.timings["total"] = time.perf_counter() - started
+    return run.result()
+
+
+@dataclass
+class _Run:
+    """One capture on its way through the stages: what came in, then what each stage made."""
+
+    planes: np.ndarray
+    aperture: FilterAperture
+    optics: MCAOptics | None
+    pixel_scale: float
+    disparity_range_px: tuple[float, float] | None
+    recorder: Recorder
+    channel_offsets_px: tuple[tuple[float, float], ...] | None
+    params: PipelineParams
+    timer: _Timer = field(init=False)
+    # disparity
+    small: np.ndarray = field(init=False)  # the analysis grid
+    factor: int = field(init=False)  # processing px per analysis px
+    to_input: float = field(init=False)  # input px per analysis px
+    dense: DenseDisparity = field(init=False)
+    # surfaces, sketch
+    aligned: np.ndarray = field(init=False)
+    surfaces: Surfaces = field(init=False)
+    surface_disparity: np.ndarray = field(init=False)
+    sketch: Sketch = field(init=False)
+    focus_id: int | None = field(init=False)
+    # refine, boundaries
+    refinement: Refinement = field(init=False)
+    region_labels: np.ndarray = field(init=False)
+    # depth, all in focus, mpi
+    labels16: np.ndarray = field(init=False)
+    model_proc: np.ndarray = field(init=False)
+    model_in: np.ndarray = field(init=False)
+    depth: np.ndarray | None = field(init=False)
+    raw_in: np.ndarray = field(init=False)  # the dense disparity at processing resolution, input px
+    confidence_full: np.ndarray = field(init=False)
+    regions: list[Region] = field(init=False)
+    sharp: np.ndarray = field(init=False)
+    layers: list = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.timer = _Timer(self.recorder)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.planes.shape[0], self.planes.shape[1])
+
+    def result(self) -> DepthResult:
+        return DepthResult(
+            labels=self.labels16,
+            disparity_px=self.model_in,
+            raw_disparity_px=self.raw_in,
+            confidence=self.confidence_full,
+            depth_mm=self.depth,
+            all_in_focus=self.sharp,
+            regions=self.regions,
+            focus_region=self.focus_id,
+            layers=self.layers,
+            pixel_scale=self.pixel_scale,
+            timings_s=self.timer.timings,
+        )
+
+
+def _planes(run: _Run) -> None:
+    if run.channel_offsets_px is not None:
+        run.planes = align_channel_samples(run.planes, run.channel_offsets_px)
+    run.recorder.record("planes", planes=run.planes, pixel_scale=run.pixel_scale)
+
+
+def _disparity(run: _Run) -> None:
+    run.small, run.factor = _analysis_grid(run.planes, run.params.analysis_max_side_px)
+    run.to_input = float(run.factor * run.pixel_scale)
+    height, width = run.shape
+    range_in = run.disparity_range_px or default_disparity_range_px(
+        run.aperture, run.optics, (int(height * run.pixel_scale), int(width * run.pixel_scale))
+    )
+    range_an = (range_in[0] / run.to_input, range_in[1] / run.to_input)
+    run.dense = estimate_dense(run.small, run.aperture, range_an, run.params.dense)
+    low, high = run.dense.search_range_px
+    run.recorder.record(
+        "disparity",
+        disparity_px=run.dense.disparity_px * np.float32(run.to_input),
+        confidence=run.dense.confidence,
+        analysis_scale=float(run.factor),
+        search_range_px=(low * run.to_input, high * run.to_input),
+    )
+
+
+def _surfaces(run: _Run) -> None:
+    run.aligned = display_gamma(warp_channels(run.small, run.aperture, run.dense.disparity_px))
+    evidence = _evidence(run.small, run.dense, run.params.evidence)
+    run.surfaces = build_surfaces(run.aligned, run.dense.disparity_px, run.params.surfaces, evidence=evidence)
+    run.recorder.record("surfaces", labels=run.surfaces.labels, count=run.surfaces.count)
+
+
+def _sketch(run: _Run) -> None:
+    run.surface_disparity = run.surfaces.disparity()
+    run.sketch = build_sketch(run.surfaces, run.surface_disparity, run.dense.confidence, run.params.sketch)
+    run.focus_id = _focus_region(run.sketch, run.params.sketch.focus_tolerance_px, run.to_input)
+    run.recorder.record(
+        "sketch",
+        labels=run.sketch.labels,
+        aligned=run.aligned,
+        region_count=len(run.sketch.regions),
+        focus_region=run.focus_id,
+        order=run.sketch.order,
+        occludes=run.sketch.occludes,
+    )
+
+
+def _refine_stage(run: _Run) -> None:
+    if run.params.refine is None:
+        run.refinement = _no_refinement(run.sketch, run.surface_disparity)
+    else:
+        run.refinement = _refine(run.small, run.aperture, run.sketch.labels, run.surface_disparity, run.params.refine)
+    run.sketch = _refined_sketch(run.sketch, run.refinement, run.params.sketch.slant_px)
+    run.recorder.record(
+        "refine",
+        disparity_px={r.id: r.disparity_px * run.to_input for r in run.sketch.regions},
+        planar={i: p is not None for i, p in run.refinement.planes.items()},
+        offset_px=run.refinement.offsets_px,
+    )
+
+
+def _boundaries(run: _Run) -> None:
+    run.region_labels = run.sketch.labels
+    if run.params.boundaries is not None:
+        models = _region_models(run.sketch, run.refinement.disparity_px)
+        run.region_labels = snap_boundaries(run.small, run.aperture, run.sketch.labels, models, run.params.boundaries)
+    changed = int((run.region_labels != run.sketch.labels).sum())
+    run.recorder.record("boundaries", labels=run.region_labels, changed_px=changed)
+
+
+def _depth(run: _Run) -> None:
+    factor, sketch = run.factor, run.sketch
+    superpixels_full = _upsample_labels(run.surfaces.labels, factor, run.shape)
+    labels16 = sketch.superpixel_region[superpixels_full].astype(np.uint16)
+    model_proc = _model_at_processing(run.surfaces, sketch, run.refinement, superpixels_full, labels16, factor)
+    if run.region_labels is not sketch.labels:
+        snapped = _upsample_labels(run.region_labels, factor, run.shape).astype(np.uint16)
+        moved = snapped != labels16
+        if moved.any():
+            plane_of = np.zeros((max([int(snapped.max())] + [r.id for r in sketch.regions]) + 1, 3))
+            for r in sketch.regions:
+                plane_of[r.id] = rescale_plane(r.plane, factor) if factor > 1 else r.plane
+            model_proc[moved] = plane_map(snapped.astype(np.int32), plane_of)[moved]
+        labels16 = snapped
+    run.labels16, run.model_proc = labels16, model_proc
+    run.model_in = model_proc * np.float32(run.pixel_scale)
+    run.depth = depth_map_mm(run.model_in, run.optics) if run.optics is not None else None
+    run.raw_in = _upsample(run.dense.disparity_px, run.shape) * np.float32(run.to_input)
+    run.confidence_full = _upsample(run.dense.confidence, run.shape)
+    run.regions = _regions(sketch, run.optics, factor, run.pixel_scale, run.focus_id)
+    items: dict[str, object] = dict(labels=run.labels16, disparity_px=run.model_in, regions=run.regions)
+    if run.depth is not None:
+        items["depth_mm"] = run.depth
+    run.recorder.record("depth", **items)
+
+
+def _all_in_focus(run: _Run) -> None:
+    run.sharp = all_in_focus(run.planes, run.aperture, run.model_proc)
+    run.recorder.record("all_in_focus", image=run.sharp)
+
+
+def _mpi(run: _Run) -> None:
+    by_id = {r.id: r for r in run.regions}
+    run.layers = multi_plane_images(
+        run.sharp,
+        run.labels16,
+        [r.id for r in run.regions],
+        {i: by_id[i].disparity_px for i in by_id},
+        {i: by_id[i].inter_image_depth_mm for i in by_id},
+        {i: by_id[i].inter_object_depth_mm for i in by_id},
+    )
+    run.recorder.record("mpi", layers=run.layers)
+
+
+# The paper's steps, in order (the module docstring says what each records).
+_STAGES: tuple[tuple[str, Callable[[_Run], None]], ...] = (
+    ("planes", _planes),
+    ("disparity", _disparity),
+    ("surfaces", _surfaces),
+    ("sketch", _sketch),
+    ("refine", _refine_stage),
+    ("boundaries", _boundaries),
+    ("depth", _depth),
+    ("all_in_focus", _all_in_focus),
+    ("mpi", _mpi),
+)
+
+
+def _refine(
+    planes: np.ndarray, aperture: FilterAperture, labels: np.ndarray, model: np.ndarray, params: RefineParams
+) -> Refinement:
+    bands = feature_bands(planes)
+    noise = feature_noise(planes, bands) if params.noise_model else None
+    return refine_regions(stack_bands(bands), aperture, labels, model, params, noise=noise)
 
 
 def _region_models(sketch: Sketch, refined: np.ndarray) -> dict[int, np.ndarray]:

@@ -26,8 +26,8 @@ import numpy as np
 
 from mca.processing.camera import FilterAperture
 from mca.processing.cost import cost_at
-from mca.processing.features import texture_energy
-from mca.processing.surfaces import fit_planes, interior_weights
+from mca.processing.features import FeatureNoise, texture_energy
+from mca.processing.surfaces import fit_planes, fit_planes_at, interior_weights
 
 
 @dataclass(frozen=True)
@@ -42,6 +42,8 @@ class RefineParams:
     min_cells_for_slope: int = 6  # a curved region's correction gets a slope only with this many voting cells
     window_px: int = 9
     noise_floor: float = 2e-3
+    sampling: str = "bilinear"  # the cost's sampler (`processing.cost`)
+    noise_model: bool = True  # the pipeline measures the noise for the cost (`refine_regions(noise=...)`)
 
 
 @dataclass
@@ -107,22 +109,6 @@ def _robust_level(values: np.ndarray, weights: np.ndarray) -> float:
     return float(values[order][np.searchsorted(cumulative, 0.5 * cumulative[-1])])
 
 
-def _robust_plane(xs: np.ndarray, ys: np.ndarray, values: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """Plane a x + b y + c through cell minima, reweighted twice (residuals beyond 2 robust sigmas dropped)."""
-    a = np.stack([xs, ys, np.ones_like(xs)], axis=1)
-    w = weights.copy()
-    coef = np.array([0.0, 0.0, _robust_level(values, weights)])
-    for _ in range(3):
-        if np.count_nonzero(w > 0) < 4:
-            break
-        aw = a * w[:, None]
-        coef = np.linalg.lstsq(aw.T @ a + np.eye(3) * 1e-9, aw.T @ values, rcond=None)[0]
-        residual = np.abs(values - a @ coef)
-        sigma = 1.4826 * np.median(residual[w > 0]) + 1e-3
-        w = weights * (residual < 2.0 * sigma + 0.05)
-    return coef
-
-
 def refine_regions(
     bands: np.ndarray,
     aperture: FilterAperture,
@@ -130,10 +116,11 @@ def refine_regions(
     model: np.ndarray,
     params: RefineParams = RefineParams(),
     fronto_parallel: set[int] | frozenset[int] = frozenset(),
+    noise: FeatureNoise | None = None,
 ) -> Refinement:
     """Refine the disparity `model` (H, W) region by region (`labels` 1..L) on the feature planes `bands`
     ((B, 3, H, W), `processing.cost.stack_bands`); see the module docstring. Regions in `fronto_parallel` are
-    held to one level."""
+    held to one level; `noise` (`features.feature_noise` of the bands' planes) goes to the cost."""
     h, w = labels.shape
     count = int(labels.max()) + 1
     lab = labels.ravel()
@@ -179,7 +166,9 @@ def refine_regions(
         """Per used (region, cell) bin and offset: the weighted cost sum of the model shifted by the offset."""
         maps = np.stack([base + np.float32(o) for o in offsets]).astype(np.float32)
         maps = _occluders_own_contours(maps, near_occluder, reach)
-        costs = cost_at(bands, aperture, maps, params.window_px, params.noise_floor, sampling="bilinear")
+        costs = cost_at(
+            bands, aperture, maps, params.window_px, params.noise_floor, sampling=params.sampling, noise=noise
+        )
         return np.stack([np.bincount(bins, (c.ravel() * wflat), n_bins)[used] for c in costs], axis=1)
 
     tilt = planar & ~flat  # slanted planar regions: the plane itself is refined
@@ -194,7 +183,12 @@ def refine_regions(
                 continue
             vote = strength[sel] * wsum[used][sel]
             if (tilt[rid] and sel.sum() >= 4) or (free[rid] and sel.sum() >= params.min_cells_for_slope):
-                correction[rid] = _robust_plane(bin_x[sel], bin_y[sel], minima[sel], vote)
+                # cell minima are precise to a few hundredths of a pixel, a few of them bad: a negligible
+                # ridge, and cells beyond 2 sigmas + 0.05 px of the plane dropped
+                zeros = np.zeros(vote.size, np.int64)
+                correction[rid] = fit_planes_at(
+                    zeros, bin_x[sel], bin_y[sel], minima[sel], vote, 1, 1e-6, 3, 0.02, 2.0, 0.05
+                )[0]
             else:
                 correction[rid, 2] = _robust_level(minima[sel], vote)
         return correction

@@ -95,25 +95,47 @@ def interior_weights(labels: np.ndarray, margin_px: int) -> np.ndarray:
 def fit_planes(
     labels: np.ndarray, count: int, disparity: np.ndarray, weights: np.ndarray, slope_ridge: float, iterations: int = 4
 ) -> np.ndarray:
-    """Robust weighted least-squares plane per label: (count, 3) float64 (a, b, c).
-
-    Iteratively reweighted: residuals beyond 1.5 sigmas are down-weighted (Huber), beyond 4 sigmas + 1 px dropped; a
-    ridge of `slope_ridge` per unit weight pulls the slopes towards 0 (small or degenerate supports)."""
+    """Robust weighted least-squares plane per label of an image: (count, 3) float64 (a, b, c); see
+    `fit_planes_at`."""
     h, w = labels.shape
-    lab = labels.ravel()
     xs = np.tile(np.arange(w, dtype=np.float64), h)
     ys = np.repeat(np.arange(h, dtype=np.float64), w)
-    d = disparity.ravel().astype(np.float64)
-    wt = weights.ravel().astype(np.float64)
+    return fit_planes_at(labels.ravel(), xs, ys, disparity.ravel(), weights.ravel(), count, slope_ridge, iterations)
+
+
+def fit_planes_at(
+    lab: np.ndarray,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    values: np.ndarray,
+    weights: np.ndarray,
+    count: int,
+    slope_ridge: float,
+    iterations: int = 4,
+    min_sigma_px: float = 0.25,
+    drop_sigmas: float = 4.0,
+    drop_px: float = 1.0,
+) -> np.ndarray:
+    """Robust weighted least-squares plane a x + b y + c through the points (xs, ys, values) of each label
+    0..count-1 (flat arrays): (count, 3) float64, zeros for a label without weight.
+
+    Iteratively reweighted: residuals beyond 1.5 sigmas are down-weighted (Huber), beyond `drop_sigmas` sigmas +
+    `drop_px` dropped, sigma the label's weighted residual spread but at least `min_sigma_px`; a ridge of
+    `slope_ridge` per unit weight pulls the slopes towards 0 (small or degenerate supports)."""
+    lab = np.asarray(lab, np.int64)
+    xs = np.asarray(xs, np.float64)
+    ys = np.asarray(ys, np.float64)
+    d = np.asarray(values, np.float64)
+    wt = np.asarray(weights, np.float64)
     coef: np.ndarray = np.zeros((count, 3))
     robust = wt
     for iteration in range(iterations):
         if iteration > 0:
             residual = d - (coef[lab, 0] * xs + coef[lab, 1] * ys + coef[lab, 2])
             spread = np.bincount(lab, wt * residual * residual, count) / np.maximum(np.bincount(lab, wt, count), 1e-12)
-            sigma = np.maximum(np.sqrt(spread), 0.25)[lab]
+            sigma = np.maximum(np.sqrt(spread), min_sigma_px)[lab]
             ratio = np.abs(residual) / (1.5 * sigma)
-            robust = wt / np.maximum(1.0, ratio) * (np.abs(residual) < 4.0 * sigma + 1.0)
+            robust = wt / np.maximum(1.0, ratio) * (np.abs(residual) < drop_sigmas * sigma + drop_px)
         s1 = np.bincount(lab, robust, count)
         sx = np.bincount(lab, robust * xs, count)
         sy = np.bincount(lab, robust * ys, count)
@@ -157,16 +179,20 @@ class _Graph:
     pix_index: np.ndarray
 
 
-def _graph(labels: np.ndarray, count: int, rings: int, samples: int) -> _Graph:
-    _h, _w = labels.shape
-    # boundary pixel edges (horizontal and vertical neighbours with different labels)
+def boundary_edges(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every boundary pixel edge (4-neighbours with different labels): the smaller and larger label (int64) and
+    the edge's midpoint (x, y) (float64), horizontal neighbours first."""
     ya, xa = np.nonzero(labels[:, :-1] != labels[:, 1:])
     yb, xb = np.nonzero(labels[:-1] != labels[1:])
     first = np.concatenate([labels[ya, xa], labels[yb, xb]]).astype(np.int64)
     second = np.concatenate([labels[ya, xa + 1], labels[yb + 1, xb]]).astype(np.int64)
     px = np.concatenate([xa + 0.5, xb.astype(np.float64)])
     py = np.concatenate([ya.astype(np.float64), yb + 0.5])
-    lo, hi = np.minimum(first, second), np.maximum(first, second)
+    return np.minimum(first, second), np.maximum(first, second), px, py
+
+
+def _graph(labels: np.ndarray, count: int, rings: int, samples: int) -> _Graph:
+    lo, hi, px, py = boundary_edges(labels)
     key = lo * count + hi
     order = np.argsort(key, kind="stable")
     key, px, py = key[order], px[order], py[order]

@@ -50,9 +50,10 @@ def test_depth_steps_between_objects_are_kept():
 
 
 def test_the_b_spline_sampler_removes_the_noise_bias_of_full_colour_input():
-    """`DenseParams(sampling="bspline")`: a textured plane at +0.25 px with white noise in every channel comes
-    out there, not pulled toward +1 where every channel is sampled halfway between pixels (the default,
-    bilinear sampling: +0.46; `processing.cost` says why it stays the default)."""
+    """`DenseParams(sampling="bspline")` without the noise model: a textured plane at +0.25 px with white noise
+    in every channel comes out there, not pulled toward +1 where every channel is sampled halfway between pixels
+    (bilinear sampling without the noise model: +0.46; the default takes the bias out with the noise model,
+    tests/test_noise_model.py)."""
     from mca.processing.pipeline import PipelineParams, run_pipeline
 
     rng = np.random.default_rng(4)
@@ -63,7 +64,7 @@ def test_the_b_spline_sampler_removes_the_noise_bias_of_full_colour_input():
     middle = (slice(20, -20), slice(20, -20))
     medians = {}
     for sampling in ("bspline", "bilinear"):
-        params = PipelineParams(dense=DenseParams(sampling=sampling), refine=None, boundaries=None)
+        params = PipelineParams(dense=DenseParams(sampling=sampling, noise_model=False), refine=None, boundaries=None)
         result = run_pipeline(noisy, APERTURE, None, disparity_range_px=(-4.0, 4.0), params=params)
         medians[sampling] = float(np.median(result.raw_disparity_px[middle]))
     assert abs(medians["bspline"] - 0.25) < 0.15

@@ -1,0 +1,135 @@
+"""The sensor-noise model of the feature planes (`processing.features.feature_noise`) and what the cost does with
+it (`processing.cost`, `DenseParams(noise_model=True)`, `RefineParams(noise_model=True)`).
+
+The references are measured in the tests: the noise actually added, and the variance and autocorrelation of the
+feature planes of pure noise."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from mca_scenes import render_layers, texture
+
+from mca.capture.profiles import load_profile
+from mca.processing.cost import cost_volume, stack_bands
+from mca.processing.dense import DenseParams
+from mca.processing.features import feature_bands, feature_noise, log_compress
+from mca.processing.refine import RefineParams, refine_regions
+
+APERTURE = load_profile("paper-70d").aperture
+
+
+def smooth_scene(shape: tuple[int, int]) -> np.ndarray:
+    """Two brightness halves (dark left, bright right) with gentle shading and no fine structure."""
+    h, w = shape
+    _ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
+    base = np.where(xs < w / 2, 0.08, 0.6).astype(np.float32)
+    shading = 1.0 + 0.1 * np.sin(xs / 37.0)
+    return np.stack([base * shading * k for k in (1.0, 0.8, 1.2)], axis=-1).astype(np.float32)
+
+
+def test_the_measured_noise_is_the_noise_added_at_every_brightness():
+    rng = np.random.default_rng(1)
+    shape = (240, 320)
+    clean = smooth_scene(shape)
+    sigma = 0.01 * np.sqrt(clean / 0.6)  # photon-like: noisier where brighter, in linear units
+    noisy = clean + rng.standard_normal(clean.shape).astype(np.float32) * sigma
+    model = feature_noise(noisy)
+    # the truth: the variance of the noise in the log planes, from the noise that was added
+    difference = log_compress(noisy) - _log_with_white_of(clean, noisy)
+    for c in range(3):
+        for half in (slice(10, 150), slice(170, 310)):
+            truth = float(np.mean(difference[20:-20, half, c] ** 2))
+            measured = float(np.mean(model.variance[c][20:-20, half]))
+            assert 0.8 < measured / truth < 1.25, (c, half, measured, truth)
+
+
+def _log_with_white_of(clean: np.ndarray, noisy: np.ndarray) -> np.ndarray:
+    """`log_compress` of `clean` with the white level `log_compress` found for `noisy`."""
+    white = float(np.percentile(noisy, 99.5))
+    return np.log1p(np.clip(clean, 0.0, None) * np.float32(32.0 / white))
+
+
+def test_band_gains_and_correlations_are_those_of_filtered_white_noise():
+    rng = np.random.default_rng(2)
+    flat = np.full((300, 300, 3), 0.5, np.float32)
+    noisy = flat + rng.normal(0.0, 0.02, flat.shape).astype(np.float32)
+    model = feature_noise(noisy)
+    bands = feature_bands(noisy)  # of a flat scene: noise only
+    pixel_variance = float(np.mean(model.variance[0]))
+    for b, band in enumerate(bands):
+        x = band[20:-20, 20:-20, 0].astype(np.float64)
+        variance = float(np.mean(x * x))
+        assert variance == pytest.approx(pixel_variance * model.band_gain[b], rel=0.15)
+        for lag in (1, 2):
+            along_x = float(np.mean(x[:, lag:] * x[:, :-lag])) / variance
+            along_y = float(np.mean(x[lag:] * x[:-lag])) / variance
+            assert along_x == pytest.approx(model.band_rho[b, 0, lag - 1], abs=0.05)
+            assert along_y == pytest.approx(model.band_rho[b, 1, lag - 1], abs=0.05)
+        # nothing but noise: its signal correlations are left at the noise's (nothing to keep in step with)
+        assert np.allclose(model.signal_rho[b, 0], model.band_rho[b])
+
+
+def noisy_plane(truth_px: float, sd: float, seed: int) -> np.ndarray:
+    shape = (160, 200)
+    image = render_layers([(texture(shape, 8, blur_px=1.5), np.ones(shape, np.float32), truth_px)], shape, APERTURE)
+    rng = np.random.default_rng(seed)
+    return np.clip(image + rng.normal(0.0, sd, image.shape).astype(np.float32), 1e-3, None)
+
+
+@pytest.mark.parametrize("truth", [0.25, 2.0])
+def test_the_noise_model_takes_the_sampling_bias_out_of_the_bilinear_cost(truth):
+    """White noise in every channel: bilinear sampling halfway between pixels averages it down, so the cost
+    without the model is lowest toward odd red-blue disparities (every channel halfway); with it, the minimum of
+    the summed cost is at the truth."""
+    noisy = noisy_plane(truth, 0.05, 3)
+    bands = feature_bands(noisy)
+    candidates = np.arange(truth - 1.0, truth + 1.001, 0.05)
+    minima = {}
+    for label, noise in (("plain", None), ("model", feature_noise(noisy, bands))):
+        volume = cost_volume(stack_bands(bands), APERTURE, candidates, 9, 2e-3, "bilinear", noise)
+        curve = volume[:, 25:-25, 25:-25].reshape(len(candidates), -1).mean(axis=1)
+        minima[label] = float(candidates[int(np.argmin(curve))])
+    assert abs(minima["model"] - truth) <= 0.1
+    assert abs(minima["plain"] - truth) > 0.15  # the bias the model exists for
+
+
+def test_on_a_noise_free_scene_the_noise_model_moves_nothing():
+    """Without noise the measured 'noise' is only the finest texture the patches could not avoid; the cost moves
+    a little and its minima hardly."""
+    clean = noisy_plane(0.75, 0.0, 0)
+    bands = feature_bands(clean)
+    candidates = np.arange(-0.25, 1.76, 0.05)
+    plain = cost_volume(stack_bands(bands), APERTURE, candidates, 9, 2e-3)
+    with_model = cost_volume(stack_bands(bands), APERTURE, candidates, 9, 2e-3, noise=feature_noise(clean, bands))
+    assert float(np.median(np.abs(plain - with_model))) < 1e-3
+    inner = (slice(None), slice(25, -25), slice(25, -25))
+    winners = candidates[np.argmin(with_model[inner], axis=0)]
+    assert float(np.mean(winners == candidates[np.argmin(plain[inner], axis=0)])) > 0.95  # measured 0.98
+    assert abs(float(np.median(winners)) - 0.75) < 0.03
+
+
+def test_a_noise_model_of_other_planes_is_refused():
+    planes = noisy_plane(0.0, 0.02, 0)
+    other = cv2.pyrDown(planes)
+    with pytest.raises(ValueError, match="noise model"):
+        cost_volume(stack_bands(feature_bands(planes)), APERTURE, np.array([0.0]), 9, 2e-3, noise=feature_noise(other))
+
+
+def test_the_pipeline_with_the_noise_model_keeps_a_noisy_region_where_it_is():
+    """Dense search and refinement with the noise model: a noisy region at +0.25 px is found there."""
+    from mca.processing.pipeline import PipelineParams, run_pipeline
+
+    noisy = noisy_plane(0.25, 0.06, 4)
+    middle = (slice(20, -20), slice(20, -20))
+    params = PipelineParams(dense=DenseParams(noise_model=True), refine=RefineParams(noise_model=True), boundaries=None)
+    result = run_pipeline(noisy, APERTURE, None, disparity_range_px=(-4.0, 4.0), params=params)
+    assert abs(float(np.median(result.disparity_px[middle])) - 0.25) < 0.08
+    labels = np.ones(noisy.shape[:2], np.int32)
+    model = np.zeros(noisy.shape[:2], np.float32)
+    bands = feature_bands(noisy)
+    refined = refine_regions(
+        stack_bands(bands), APERTURE, labels, model, RefineParams(), {1}, noise=feature_noise(noisy, bands)
+    )
+    assert abs(float(np.median(refined.disparity_px)) - 0.25) < 0.06
