@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mca.processing.surfaces import Surfaces, fit_planes, interior_weights
+from mca.processing.surfaces import Surfaces, boundary_edges, fit_planes, interior_weights
 
 
 @dataclass(frozen=True)
@@ -70,17 +70,8 @@ class Sketch:
 
 def _boundary_gaps(surfaces: Surfaces) -> tuple[np.ndarray, np.ndarray]:
     """Signed and absolute mean (P_j - P_i) of each adjacent superpixel pair (i, j) over their shared boundary."""
-    labels = surfaces.labels
     planes = surfaces.planes
-    np.zeros(surfaces.pairs.shape[0])
-    # boundary pixel edges again (cheap), evaluated at the midpoints
-    ya, xa = np.nonzero(labels[:, :-1] != labels[:, 1:])
-    yb, xb = np.nonzero(labels[:-1] != labels[1:])
-    first = np.concatenate([labels[ya, xa], labels[yb, xb]]).astype(np.int64)
-    second = np.concatenate([labels[ya, xa + 1], labels[yb + 1, xb]]).astype(np.int64)
-    px = np.concatenate([xa + 0.5, xb.astype(np.float64)])
-    py = np.concatenate([ya.astype(np.float64), yb + 0.5])
-    lo, hi = np.minimum(first, second), np.maximum(first, second)
+    lo, hi, px, py = boundary_edges(surfaces.labels)  # evaluated at the boundary edges' midpoints
     count = surfaces.count
     key = lo * count + hi
     pair_keys = surfaces.pairs[:, 0] * count + surfaces.pairs[:, 1]
@@ -191,11 +182,6 @@ class _UnionFind:
         while parent[i] != root:
             parent[i], i = root, parent[i]
         return int(root)
-
-    def union(self, i: int, j: int) -> None:
-        a, b = self.find(i), self.find(j)
-        if a != b:
-            self.parent[max(a, b)] = min(a, b)
 
 
 def build_sketch(

@@ -1,0 +1,190 @@
+"""The 2.1D sketch's rules one by one (`processing.sketch.build_sketch`), on surfaces built by hand.
+
+Each test lays out superpixels on a small grid with chosen planes and colours, so the right regions, planes,
+centroids and occlusions are known by construction; the adjacency (pairs and shared boundary lengths) is counted
+here, pixel edge by pixel edge."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mca.processing.sketch import SketchParams, build_sketch
+from mca.processing.surfaces import Surfaces
+
+GREY = (0.5, 0.5, 0.5)
+RED = (0.9, 0.1, 0.1)
+
+
+def surfaces_of(labels: np.ndarray, levels: dict[int, float], colours: dict[int, tuple[float, float, float]]):
+    """Surfaces with fronto-parallel planes at `levels` and mean colours `colours` per superpixel label."""
+    labels = labels.astype(np.int32)
+    n = int(labels.max()) + 1
+    planes = np.zeros((n, 3))
+    for k, v in levels.items():
+        planes[k, 2] = v
+    edges: dict[tuple[int, int], int] = {}
+    h, w = labels.shape
+    for y in range(h):
+        for x in range(w):
+            for yy, xx in ((y, x + 1), (y + 1, x)):
+                if yy < h and xx < w and labels[y, x] != labels[yy, xx]:
+                    key = (min(labels[y, x], labels[yy, xx]), max(labels[y, x], labels[yy, xx]))
+                    edges[key] = edges.get(key, 0) + 1
+    keys = sorted(edges)
+    return Surfaces(
+        labels=labels,
+        planes=planes,
+        fitted=planes.copy(),
+        colours=np.array([colours[k] for k in range(n)], np.float64),
+        areas=np.bincount(labels.ravel(), minlength=n).astype(np.int64),
+        pairs=np.array(keys, np.int64).reshape(-1, 2),
+        pair_lengths=np.array([edges[k] for k in keys], np.int64),
+    )
+
+
+def sketch(surfaces: Surfaces, params: SketchParams = SketchParams(), confidence: float = 0.8):
+    disparity = surfaces.disparity()
+    return build_sketch(surfaces, disparity, np.full(disparity.shape, confidence, np.float32), params)
+
+
+def halves(shape=(60, 80)) -> np.ndarray:
+    labels = np.zeros(shape, np.int32)
+    labels[:, shape[1] // 2 :] = 1
+    return labels
+
+
+@pytest.mark.parametrize(
+    ("gap_px", "colour", "regions"),
+    [
+        (0.3, GREY, 1),  # continuous and alike: one object
+        (0.9, GREY, 2),  # a step beyond continuity_px (0.6): two objects
+        (0.3, RED, 2),  # continuous but another colour: two objects
+    ],
+)
+def test_neighbours_join_when_continuous_and_alike(gap_px, colour, regions):
+    s = sketch(surfaces_of(halves(), {0: 1.0, 1: 1.0 + gap_px}, {0: GREY, 1: colour}))
+    assert len(s.regions) == regions
+
+
+def test_the_same_depth_pass_joins_unlike_neighbours_when_asked():
+    surfaces = surfaces_of(halves(), {0: 1.0, 1: 1.3}, {0: GREY, 1: RED})
+    assert len(sketch(surfaces).regions) == 2  # off by default
+    assert len(sketch(surfaces, SketchParams(same_depth_px=0.5)).regions) == 1
+    assert len(sketch(surfaces, SketchParams(same_depth_px=0.2)).regions) == 2  # 0.3 px apart
+
+
+def test_a_small_region_joins_the_neighbour_it_continues_whatever_its_colour():
+    labels = np.zeros((60, 90), np.int32)
+    labels[:, 45:] = 1
+    labels[28:30, 43:47] = 2  # 8 px across the boundary (the minimum is 0.2 % of 5,400 = 10.8 px)
+    levels = {0: 1.0, 1: 4.0, 2: 3.8}  # it continues 1 (0.2 px), not 0 (2.8 px)
+    s = sketch(surfaces_of(labels, levels, {0: GREY, 1: GREY, 2: RED}))
+    assert s.superpixel_region[2] == s.superpixel_region[1]
+    assert s.superpixel_region[2] != s.superpixel_region[0]
+    big = labels.copy()
+    big[26:32, 41:49] = 2  # 48 px: not small, and too unlike either side to join them
+    s = sketch(surfaces_of(big, levels, {0: GREY, 1: GREY, 2: RED}), SketchParams(sliver_fraction=0.0))
+    assert len(s.regions) == 3
+
+
+def test_a_thin_rim_sliver_joins_its_farthest_neighbour():
+    # near object (0) left, far wall (1) right, a 3 px strip (2) between them at an in-between depth and another
+    # colour: 180 px of 24,000 (under 1 %), 2 area / boundary = 2 x 180 / 120 = 3 px (under 12): a rim sliver
+    labels = np.zeros((60, 400), np.int32)
+    labels[:, 198:] = 1
+    labels[:, 195:198] = 2
+    levels = {0: 1.0, 1: 6.0, 2: 3.0}
+    colours = {0: GREY, 1: (0.2, 0.2, 0.8), 2: RED}
+    s = sketch(surfaces_of(labels, levels, colours))
+    assert s.superpixel_region[2] == s.superpixel_region[1]  # the farther (larger disparity) side
+    assert s.superpixel_region[0] != s.superpixel_region[1]
+    # thinness is the test: a 3 px strip is not thinner than 2 px, and stays
+    s = sketch(surfaces_of(labels, levels, colours), SketchParams(sliver_width_px=2.0))
+    assert len(s.regions) == 3
+
+
+def test_region_properties_are_those_of_its_pixels():
+    labels = halves((40, 100))
+    s = sketch(surfaces_of(labels, {0: -1.5, 1: 2.25}, {0: GREY, 1: RED}), confidence=0.6)
+    assert len(s.regions) == 2
+    by_level = sorted(s.regions, key=lambda r: r.disparity_px)
+    near, far = by_level
+    assert near.pixels == far.pixels == 2000
+    assert near.centroid_xy == pytest.approx((24.5, 19.5))
+    assert far.centroid_xy == pytest.approx((74.5, 19.5))
+    assert near.disparity_px == pytest.approx(-1.5, abs=1e-4)
+    assert far.disparity_px == pytest.approx(2.25, abs=1e-4)
+    assert not near.slanted and not far.slanted
+    assert near.confidence == pytest.approx(0.6, abs=1e-6)
+    assert s.order[near.id] == 0 and s.order[far.id] == 1  # front to back
+    # the nearer side of a boundary occludes the other, by more than the margin
+    assert s.occludes[near.id] == [far.id] and s.occludes[far.id] == []
+    assert np.all(s.labels[:, :50] == near.id) and np.all(s.labels[:, 50:] == far.id)
+
+
+def test_neighbours_within_the_occlusion_margin_occlude_nothing():
+    labels = halves((40, 100))
+    s = sketch(surfaces_of(labels, {0: 1.0, 1: 1.4}, {0: GREY, 1: RED}))  # 0.4 px apart, margin 0.5
+    assert len(s.regions) == 2
+    assert all(not v for v in s.occludes.values())
+
+
+def test_a_confidence_above_one_is_reported_as_one():
+    labels = halves((40, 100))
+    s = sketch(surfaces_of(labels, {0: 1.0, 1: 3.0}, {0: GREY, 1: RED}), confidence=1.7)
+    assert all(r.confidence == 1.0 for r in s.regions)
+
+
+def test_sketch_params_are_frozen():
+    import dataclasses
+
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        SketchParams().continuity_px = 1.0  # type: ignore[misc]
+
+
+def test_equal_depths_of_unlike_colours_stay_apart_by_default():
+    s = sketch(surfaces_of(halves(), {0: 2.0, 1: 2.0}, {0: GREY, 1: RED}))
+    assert len(s.regions) == 2
+
+
+@pytest.mark.parametrize(("width_px", "sliver"), [(11, True), (12, False)])
+def test_a_strip_is_a_sliver_only_when_thinner_than_the_width(width_px, sliver):
+    # 20 rows x 1,300 columns: 1 % is 260 px, so strips of 11 and 12 columns (220, 240 px) are both small
+    labels = np.zeros((20, 1300), np.int32)
+    labels[:, 650 + width_px :] = 1
+    labels[:, 650 : 650 + width_px] = 2
+    s = sketch(surfaces_of(labels, {0: 1.0, 1: 6.0, 2: 3.0}, {0: GREY, 1: (0.2, 0.2, 0.8), 2: RED}))
+    assert (s.superpixel_region[2] == s.superpixel_region[1]) == sliver
+    assert len(s.regions) == (2 if sliver else 3)
+
+
+def test_a_sliver_ignores_a_neighbour_it_barely_touches():
+    # the strip's boundary: 60 edges with the near object, 50 with the wall, 10 with a far region below the wall
+    # (under a quarter of it): it joins the wall, not the farthest neighbour
+    labels = np.zeros((60, 400), np.int32)
+    labels[:, 198:] = 1
+    labels[50:, 198:] = 3
+    labels[:, 195:198] = 2
+    levels = {0: 1.0, 1: 6.0, 2: 3.0, 3: 9.0}
+    colours = {0: GREY, 1: (0.2, 0.2, 0.8), 2: RED, 3: (0.1, 0.8, 0.1)}
+    s = sketch(surfaces_of(labels, levels, colours))
+    assert s.superpixel_region[2] == s.superpixel_region[1]
+    assert s.superpixel_region[3] != s.superpixel_region[1]
+
+
+@pytest.mark.parametrize(("a", "b"), [(0.03, 0.0), (0.0, 0.03)])
+def test_a_slanted_region_keeps_its_plane_and_reports_it_at_its_centroid(a, b):
+    labels = np.zeros((60, 90), np.int32)
+    labels[:, 40:] = 1
+    surfaces = surfaces_of(labels, {0: -2.0, 1: 0.0}, {0: GREY, 1: RED})
+    surfaces.planes[1] = (a, b, 1.0)
+    surfaces.fitted[1] = (a, b, 1.0)
+    s = sketch(surfaces)
+    slanted = [r for r in s.regions if r.slanted]
+    assert len(slanted) == 1  # 0.03 px/px over 50 or 60 px: 1.5-1.8 px of spread (above 0.5)
+    region = slanted[0]
+    assert region.centroid_xy == pytest.approx((64.5, 29.5))
+    assert region.plane == pytest.approx((a, b, 1.0), abs=2e-3)
+    assert region.disparity_px == pytest.approx(a * 64.5 + b * 29.5 + 1.0, abs=0.02)
+    assert float(region.disparity_at(40.0, 10.0)) == pytest.approx(a * 40.0 + b * 10.0 + 1.0, abs=0.02)
