@@ -86,3 +86,37 @@ def test_the_b_spline_sampler_keeps_a_noisy_full_colour_region_where_it_is():
         level[sampling] = float(np.median(result.disparity_px))
     assert abs(level["bspline"] - 0.25) < 0.06
     assert level["bilinear"] - 0.25 > 0.15  # measured +0.19 (seeds 4-6)
+
+
+def test_refine_params_are_frozen():
+    import dataclasses
+
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        RefineParams().cell_px = 8  # type: ignore[misc]
+
+
+def test_a_region_slanted_along_y_gets_its_plane():
+    shape = (300, 200)
+    ys, _xs = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float32)
+    truth = 0.01 * ys - 1.0  # -1 .. +2 down the image
+    image = render_layers([(texture(shape, 6, blur_px=2.5), np.ones(shape, np.float32), truth)], shape, APERTURE)
+    labels = np.ones(shape, np.int32)
+    model = (0.007 * ys - 0.6).astype(np.float32)  # the wrong slope and offset
+    result = refine_regions(bands_of(image), APERTURE, labels, model, RefineParams(cell_px=40))
+    plane = result.planes[1]
+    assert plane is not None
+    assert abs(plane[1] - 0.01) < 2e-3 and abs(plane[0]) < 2e-3
+    inner = (slice(20, -20), slice(20, -20))
+    assert float(np.abs(result.disparity_px - truth)[inner].mean()) < 0.15
+
+
+@pytest.mark.parametrize("at", [1, 3, 5])
+def test_cell_minima_are_the_vertex_of_the_parabola_through_the_lowest_sample(at):
+    from mca.processing.refine import _parabola_minima
+
+    offsets = np.arange(7) * 0.5 - 1.5
+    vertex = offsets[at] + 0.13
+    curves = ((offsets - vertex) ** 2 * 2.0 + 0.3)[None, :]
+    minima, curvature = _parabola_minima(curves, offsets)
+    assert minima[0] == pytest.approx(vertex, abs=1e-9)
+    assert curvature[0] == pytest.approx(2.0 * 2.0 * 0.25, abs=1e-9)

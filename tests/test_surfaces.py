@@ -56,3 +56,30 @@ def test_a_textureless_part_takes_the_plane_of_its_surface():
         or abs(float(np.median(result[45:75, 60:100])) - 3.0) < 0.2
     )
     assert abs(float(np.median(result[5:20, 5:30])) - 8.0) < 0.2
+
+
+def test_surface_params_are_frozen():
+    import dataclasses
+
+    import pytest
+
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        SurfaceParams().jump_clip_px = 1.0  # type: ignore[misc]
+
+
+def test_a_surface_slanted_along_y_keeps_its_slope():
+    """A textured floor whose disparity grows down the image (0.04 px per row) under a flat wall: every floor
+    superpixel's chosen plane has the floor's slope along y and none along x."""
+    h, w = 120, 160
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
+    rng = np.random.default_rng(3)
+    image = np.clip(0.4 + 0.1 * rng.standard_normal((h, w, 3)), 0.05, 1.0).astype(np.float32)
+    image[:40] = (0.2, 0.2, 0.6)
+    disparity = np.where(ys < 40, 1.0, 2.0 + 0.04 * (ys - 40)).astype(np.float32)
+    labels = ((ys // 20) * 8 + xs // 20).astype(np.int32)  # 20 x 20 superpixels, cut at the wall's edge
+    surfaces = build_surfaces(image, disparity, SurfaceParams(), labels=labels)
+    floor = np.unique(labels[50:, :])
+    assert np.allclose(surfaces.planes[floor, 1], 0.04, atol=5e-3)
+    assert np.allclose(surfaces.planes[floor, 0], 0.0, atol=5e-3)
+    result = surfaces.disparity()
+    assert float(np.max(np.abs(result[45:, :] - disparity[45:, :]))) < 0.15
