@@ -20,7 +20,7 @@ beyond what their signal lost (`_noise_deficit`): the noise keeps the share of t
 at every disparity, and the pull is gone. The pipeline does this by default (`DenseParams.noise_model`,
 `RefineParams.noise_model`). On the rendered real scenes (tuning part) it lowered bad-0.5 from 27.1 to 24.1 %
 and the relative depth error from 9.0 to 8.0 %, and left the simulator's paper scenes (CR2) as they were (median
-object error 1.34 -> 1.38 %, in-focus object 1.5 -> 1.6 mm).
+object error 1.34 -> 1.37 %, in-focus object 1.5 -> 1.6 mm).
 
 The cubic B-spline (4 x 4 taps, `sampling="bspline"`) is the other way to an even noise gain (0.46-0.50 at every
 offset); it is an option, not the default: it smooths the signal by an amount that depends on the offset too, and
