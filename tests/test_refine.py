@@ -120,3 +120,17 @@ def test_cell_minima_are_the_vertex_of_the_parabola_through_the_lowest_sample(at
     minima, curvature = _parabola_minima(curves, offsets)
     assert minima[0] == pytest.approx(vertex, abs=1e-9)
     assert curvature[0] == pytest.approx(2.0 * 2.0 * 0.25, abs=1e-9)
+
+
+def test_pixels_within_reach_of_a_nearer_region_are_its_own():
+    """`_owners`: every pixel goes to the nearest region (smallest level) within `reach_px` in x and in y."""
+    from mca.processing.refine import _owners
+
+    labels = np.full((30, 40), 2, np.int32)
+    labels[:, :20] = 1  # region 1 left, nearer
+    labels[:10, :] = 3  # region 3 along the top, farthest
+    levels = np.array([np.inf, 1.0, 4.0, 6.0])
+    owner = _owners(labels, levels, 3)
+    assert np.all(owner[10:, 20:23] == 1) and np.all(owner[13:, 23:] == 2)  # 3 px to the right of region 1
+    assert np.all(owner[7:10, :20] == 1) and np.all(owner[7:10, 23:] == 2)  # 3 px above region 1 and 2
+    assert np.all(owner[:7, 23:] == 3)
