@@ -113,3 +113,31 @@ def test_pixels_near_an_occluder_are_warped_at_the_smallest_disparity_within_rea
                 assert got[k, y, x] == expected
     untouched = _occluders_own_contours(maps, np.zeros((12, 15), bool), 2)
     assert untouched is maps
+
+
+@pytest.mark.parametrize("rows", [32, 64])
+def test_a_curved_region_gets_a_slope_only_from_six_cells(rows):
+    """A curved region model (not planar: a bowl 0.6 px deep) of the wrong slope over a slanted textured surface.
+    One row of five 32 px cells: fewer than `min_cells_for_slope` (6) vote, the correction is one level (no
+    slope). Two rows, ten cells: the correction has a slope, toward the truth's (0.01 - 0.004 = 0.006 px/px)."""
+    from mca_scenes import render_layers, texture
+
+    from mca.capture.profiles import load_profile
+    from mca.processing.cost import stack_bands
+    from mca.processing.features import feature_bands
+    from mca.processing.refine import RefineParams, refine_regions
+
+    aperture = load_profile("paper-70d").aperture
+    shape = (rows, 160)
+    _ys, xs = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float32)
+    truth = 0.01 * xs - 0.8
+    image = render_layers([(texture(shape, 7, blur_px=2.5), np.ones(shape, np.float32), truth)], shape, aperture)
+    labels = np.ones(shape, np.int32)
+    model = (0.004 * xs - 0.5 + 0.6 * ((xs - 80) / 80) ** 2).astype(np.float32)
+    result = refine_regions(stack_bands(feature_bands(image)), aperture, labels, model, RefineParams(cell_px=32))
+    assert result.planes[1] is None  # curved: its surfaces get a correction
+    slope = result.corrections[1][0]
+    if rows == 32:
+        assert result.corrections[1][:2] == (0.0, 0.0)
+    else:
+        assert 0.002 < slope < 0.01
