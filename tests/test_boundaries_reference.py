@@ -48,7 +48,9 @@ def test_dilate_reaches_the_radius_along_the_axes_but_not_the_corners():
     for radius in (1, 3, 5):
         grown = _dilate(mask, radius)
         ys, xs = np.nonzero(grown)
-        assert grown[10, 10 + radius] and grown[10 - radius, 10] and not grown[10, 10 + radius + 1]
+        for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):  # symmetric: the radius in all four directions
+            assert grown[10 + dy * radius, 10 + dx * radius]
+            assert not grown[10 + dy * (radius + 1), 10 + dx * (radius + 1)]
         assert not grown[10 + radius, 10 + radius]  # an ellipse, not a square
         assert np.all(np.hypot(ys - 10, xs - 10) <= radius + 0.5)
 
@@ -109,3 +111,21 @@ def test_a_textured_region_accepts_its_spread_of_colours():
     drawn = np.where(np.arange(80)[None, :] < 37, 1, 2).repeat(60, axis=0).astype(np.int32)
     snapped = snap_boundaries(planes, APERTURE, drawn, models, BoundaryParams())
     assert np.all(snapped[INNER, :40] == 1) and np.all(snapped[:, 41:] == 2)
+
+
+def test_boundary_params_are_frozen():
+    import dataclasses
+
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        BoundaryParams().band_px = 1  # type: ignore[misc]
+
+
+def test_a_region_whose_model_is_out_of_reach_is_passed_over_and_the_others_still_compete():
+    """Region 1's model warps by far more than the image (1e4 px): it is not scored, and takes no pixels; region 2,
+    after it in order, still is: the blue pixels drawn into region 1 go back to region 2."""
+    planes, _truth, models = two_colours()
+    drawn = np.where(np.arange(80)[None, :] < 43, 1, 2).repeat(60, axis=0).astype(np.int32)
+    models[1] = np.full(drawn.shape, 1e4, np.float32)
+    snapped = snap_boundaries(planes, APERTURE, drawn, models, BoundaryParams())
+    assert np.all(snapped[drawn == 2] == 2)
+    assert np.all(snapped[INNER, 40:43] == 2)
