@@ -129,3 +129,18 @@ def test_a_region_whose_model_is_out_of_reach_is_passed_over_and_the_others_stil
     snapped = snap_boundaries(planes, APERTURE, drawn, models, BoundaryParams())
     assert np.all(snapped[drawn == 2] == 2)
     assert np.all(snapped[INNER, 40:43] == 2)
+
+
+@pytest.mark.parametrize("drawn_y", [27, 33])
+def test_a_horizontal_boundary_three_pixels_off_moves_onto_the_edge_out_to_both_sides(drawn_y):
+    """Red above blue, the edge at y = 30, the drawn boundary 3 px off: the outline is exact away from the image's
+    sides, and moves toward the edge in the first and last columns too (a region's window there holds fewer of its
+    interior pixels, still enough to score)."""
+    planes, _truth, models = two_colours((60, 80), 80)
+    planes[30:] = BLUE
+    truth = np.where(np.arange(60)[:, None] < 30, 1, 2).repeat(80, axis=1).astype(np.int32)
+    drawn = np.where(np.arange(60)[:, None] < drawn_y, 1, 2).repeat(80, axis=1).astype(np.int32)
+    snapped = snap_boundaries(planes, APERTURE, drawn, models, BoundaryParams())
+    assert np.array_equal(snapped[:, 5:75], truth[:, 5:75])
+    for x in (0, 79):
+        assert np.sum(snapped[:, x] != truth[:, x]) < np.sum(drawn[:, x] != truth[:, x]), x
