@@ -144,3 +144,20 @@ def test_a_horizontal_boundary_three_pixels_off_moves_onto_the_edge_out_to_both_
     assert np.array_equal(snapped[:, 5:75], truth[:, 5:75])
     for x in (0, 79):
         assert np.sum(snapped[:, x] != truth[:, x]) < np.sum(drawn[:, x] != truth[:, x]), x
+
+
+def test_a_regions_model_beyond_its_reach_does_not_matter():
+    """A region's model is read over its reach only: band + half a window + 1 px (4 + 10 + 1 = 15 px) around it.
+    Region 2 (x >= 43, drawn 3 px short of the blue) has a wild model value (1e4 px) 16 px from it: it still
+    competes and takes back its blue pixels, as with no wild value at all. (One pass: the reach is measured around
+    the region as it stands at the start of a pass.)"""
+    planes, _truth, models = two_colours()
+    drawn = np.where(np.arange(80)[None, :] < 43, 1, 2).repeat(60, axis=0).astype(np.int32)
+    calm = snap_boundaries(planes, APERTURE, drawn, models, BoundaryParams(passes=1))
+    assert np.all(calm[INNER, 41:43] == 2)
+    models[2][:, 43 - 16] = 1e4
+    snapped = snap_boundaries(planes, APERTURE, drawn, models, BoundaryParams(passes=1))
+    assert np.array_equal(snapped, calm)
+    models[2][:, 43 - 15] = 1e4  # within its reach: the region is passed over (its warp would leave the image)
+    passed_over = snap_boundaries(planes, APERTURE, drawn, models, BoundaryParams(passes=1))
+    assert np.all(passed_over[:, 40:43] == 1)
