@@ -52,7 +52,6 @@ SESSIONS = {Path(log).name.removesuffix(".log").removesuffix(".unwrapped"): log 
 #: Operations with a data-out phase (SetDevicePropValue, EOS SetDevicePropValueEx): USB does not say so on the wire.
 DATA_OUT_OPS = {0x1016, 0x9110}
 _ROW = re.compile(r"^\s*\d+ ([WR]) (CMD|DATA|RESP)\s+0x([0-9a-fA-F]{4}).*?tid=(\d+) len=(\d+) got=(\d+)")
-_CLAIM = re.compile(r"[Hh]exdump of (\d+)")
 Row = tuple[str, str, int, int, int]
 
 
@@ -67,16 +66,8 @@ def reference_rows(name: str) -> list[Row]:
 
 
 def trace_blocks(name: str) -> list[HexBlock]:
-    """The log's hexdumps, each cut to the byte count the log announces (a hexdump's last line may be short)."""
-    path = TRACES / SESSIONS[name]
-    text = path.read_text(encoding="utf-8", errors="replace")
-    lines = text.splitlines()
-    blocks = []
-    for block in parse_hexdumps(text):
-        claim = _CLAIM.search(lines[block.line - 2]) if block.line >= 2 else None
-        data = block.data[: int(claim.group(1))] if claim else block.data
-        blocks.append(HexBlock(block.line, block.direction, data, True))
-    return blocks
+    """The log's hexdumps (cut to the byte count the log announces), in order, with their direction."""
+    return parse_hexdumps((TRACES / SESSIONS[name]).read_text(encoding="utf-8", errors="replace"))
 
 
 def chunks(data: bytes, sizes: list[int]) -> list[bytes]:
