@@ -452,7 +452,7 @@ def test_the_responder_refuses_to_send_what_breaks_the_transaction() -> None:
     assert drain(camera) == [CommandReceived(0x1009, 4)]
     camera.receive_data(pack_command(0x1001, 5))  # the host's next command waits until this reply is sent
     assert drain(camera) == []
-    assert camera.send_data(b"abc") == [pack_data(0x1009, 4, b"abc")]
+    assert b"".join(camera.send_data(b"abc")) == pack_data(0x1009, 4, b"abc")
     assert camera.send_response(0x2001) == pack_response(0x2001, 4)
     assert drain(camera) == [CommandReceived(0x1001, 5)]
 
@@ -478,3 +478,33 @@ def test_events_and_pings_on_their_own_channel_and_a_malformed_event_skipped() -
     with pytest.raises(ProtocolError, match="shorter than its header"):
         usb.next_event()
     assert usb.framing.broken
+
+
+def test_the_callers_read_buffer_may_be_reused_once_the_engine_asks_for_more_or_the_reply_is_in() -> None:
+    """The transports read into one reusable buffer and feed views of it: the engine copies each payload once
+    and keeps what it has not framed yet before asking for more (or before its transaction ends)."""
+    payload = bytes(range(256)) * 4
+    wire = pack_data(0x1009, 5, payload) + pack_response(0x2001, 5) + pack_response(0x2001, 6)
+    host = Initiator(UsbFraming())
+    host.send_command(0x1009, 5)
+    rx = bytearray(100)
+    pos, got = 0, []
+    while not got or not isinstance(got[-1], ResponseReceived):
+        event = host.next_event()
+        if event is NEED_DATA:
+            n = min(len(rx), len(wire) - pos)
+            rx[:] = bytes(len(rx))
+            rx[:n] = wire[pos : pos + n]
+            host.receive_data(memoryview(rx)[:n])
+            pos += n
+        else:
+            got.append(event)
+    rx[:] = b"\xff" * len(rx)  # the next read reuses the buffer; the answer to transaction 6 came with this one
+    assert merged(got) == [
+        DataStarted(0x1009, 5, len(payload)),
+        DataReceived(5, payload),
+        DataFinished(5, len(payload)),
+        ResponseReceived(0x2001, 5),
+    ]
+    host.send_command(0x1001, 6)
+    assert drain(host) == [ResponseReceived(0x2001, 6)]

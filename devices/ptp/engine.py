@@ -175,7 +175,6 @@ class _DataPhase:
     transaction_id: int
     total_bytes: int
     got_bytes: int = 0
-    packet_left: int = 0  # bytes of the current packet still to come
     ended: bool = False
 
 
@@ -210,8 +209,10 @@ class _Engine:
     def receive_data(self, data: bytes | bytearray | memoryview) -> None:
         """Bytes as they arrived (any chunking); parsed by `next_event`."""
         self.framing.receive_data(data)
-        if self._state in self._WAITING and self.framing.buffered_bytes > self.max_idle_bytes:
-            raise self._fail(f"{self.name} sent {self.framing.buffered_bytes} bytes {self._WAITING_WORDS}")
+        if self._state in self._WAITING:
+            self.framing.keep()  # they wait: the caller may reuse its buffer
+            if self.framing.buffered_bytes > self.max_idle_bytes:
+                raise self._fail(f"{self.name} sent {self.framing.buffered_bytes} bytes {self._WAITING_WORDS}")
 
     def next_event(self) -> Event | _NeedData:
         """The next event, or NEED_DATA: feed more bytes (or, in a waiting state, act first: bytes wait for it)."""
@@ -223,6 +224,8 @@ class _Engine:
                 return NEED_DATA
             event = self._on_frame(frame)
             if event is not None:
+                if self._state in self._WAITING:
+                    self.framing.keep()  # bytes beyond this frame wait: the caller may reuse its buffer
                 return event
 
     def _on_frame(self, frame: Frame) -> Event | None:
@@ -531,11 +534,8 @@ class Responder(_Engine):
         return self.framing.pack_data_piece(cmd.transaction_id, piece, last)
 
     def send_data(self, payload: bytes | memoryview) -> list[Wire]:
-        """A whole data-in phase, as the writes it takes."""
-        cmd = self._reply_due("a data phase")
-        self.send_data_start(len(payload))
-        self._sent_bytes = len(payload)
-        return self.framing.pack_data(cmd.code, cmd.transaction_id, payload)
+        """A whole data-in phase, as the pieces to send in order (USB: the header, then the payload uncopied)."""
+        return [self.send_data_start(len(payload)), self.send_data_piece(payload, last=True)]
 
     def send_response(self, code: int, params: tuple[int, ...] = ()) -> bytes:
         """The response ending the transaction (the command's transaction id)."""

@@ -135,7 +135,11 @@ class Framing:
     wire_name = "?"
 
     def __init__(self) -> None:
+        # What has arrived and is not framed yet: the rest of the bytes last fed, read in place (`_view`, not
+        # ours: it is copied into `_buf` before `next_frame` asks for more), or owned bytes (`_buf`) once a frame
+        # was cut by the end of a read. Never both: a payload is copied once, into the piece handed out.
         self._buf = bytearray()
+        self._view: memoryview | None = None
         self._ready: deque[Frame] = deque()
         self._payload_left = 0
         self._payload_last = False
@@ -144,28 +148,32 @@ class Framing:
 
     # -- receiving ---------------------------------------------------------------------------------------------
     def receive_data(self, data: bytes | bytearray | memoryview) -> None:
-        """Take bytes as they arrived, in any chunking; nothing is parsed until `next_frame`."""
-        n = len(data)
-        if not n:
+        """Take bytes as they arrived, in any chunking; nothing is parsed until `next_frame`.
+
+        `data` may be a view into a buffer the caller reuses: it is read only until `next_frame` returns None.
+        """
+        if not len(data):
             return
-        if not self._buf and not self._ready and self._payload_left >= n:
-            self._ready.append(DataPiece(bytes(data)))  # the common case of a download: one copy, no buffering
-            self._take_payload(n)
-            return
-        self._buf += data
+        if self._view is not None:  # fed twice without framing in between
+            self.keep()
+        if self._buf:
+            self._buf += data
+        else:
+            self._view = memoryview(data).cast("B") if isinstance(data, memoryview) else memoryview(data)
 
     @property
     def buffered_bytes(self) -> int:
-        return len(self._buf)
+        return len(self._buf) + (len(self._view) if self._view is not None else 0)
 
     @property
     def at_boundary(self) -> bool:
         """Nothing of a frame is half-received: the stream can be read on from here."""
-        return not self._buf and not self._payload_left and not self._ready
+        return not self.buffered_bytes and not self._payload_left and not self._ready
 
     def clear(self) -> None:
         """Drop everything buffered (after a device reset, the link starts afresh)."""
         self._buf.clear()
+        self._view = None
         self._ready.clear()
         self._payload_left = 0
         self._payload_last = False
@@ -176,27 +184,56 @@ class Framing:
         if self._ready:
             return self._ready.popleft()
         if self._payload_left:
-            if not self._buf:
+            window = self._window()
+            if not len(window):
+                self.keep()
                 return None
-            n = min(len(self._buf), self._payload_left)
-            if n == len(self._buf):
-                piece = bytes(self._buf)
-                self._buf.clear()
-            else:
-                with memoryview(self._buf) as view:
-                    piece = view[:n].tobytes()
-                del self._buf[:n]
+            n = min(len(window), self._payload_left)
+            piece = self._take(n)
             self._take_payload(n)
             return DataPiece(piece)
         if self.broken:
             raise ProtocolError(f"the {self.wire_name} stream is out of step after a broken header")
-        before = len(self._buf)
+        before = self.buffered_bytes
         try:
-            return self._parse()
+            frame = self._parse()
         except ProtocolError:
-            if len(self._buf) == before:  # a header: a bad body is consumed before it is parsed
+            if self.buffered_bytes == before:  # a header: a bad body is consumed before it is parsed
                 self.broken = True
             raise
+        if frame is None:
+            self.keep()
+        return frame
+
+    def _window(self) -> bytearray | memoryview:
+        """The bytes not framed yet, from the start of the next frame."""
+        if self._buf or self._view is None:
+            return self._buf
+        return self._view
+
+    def _take(self, n: int) -> bytes:
+        """The next `n` bytes (there must be as many), consumed."""
+        if self._buf:
+            out = bytes(self._buf[:n])
+            del self._buf[:n]
+            return out
+        assert self._view is not None
+        out = self._view[:n].tobytes()
+        self._view = self._view[n:] if n < len(self._view) else None
+        return out
+
+    def _skip(self, n: int) -> None:
+        if self._buf:
+            del self._buf[:n]
+        else:
+            assert self._view is not None
+            self._view = self._view[n:] if n < len(self._view) else None
+
+    def keep(self) -> None:
+        """Copy what is left of the caller's bytes into our own buffer (more bytes are needed, or they will wait)."""
+        if self._view is not None:
+            self._buf += self._view
+            self._view = None
 
     def _take_payload(self, n: int) -> None:
         self._payload_left -= n
@@ -207,11 +244,6 @@ class Framing:
         self._payload_left, self._payload_last = n, last
         if not n and last:
             self._ready.append(DataEnd())
-
-    def _take(self, n: int) -> bytes:
-        out = bytes(self._buf[:n])
-        del self._buf[:n]
-        return out
 
     def _parse(self) -> Frame | None:
         raise NotImplementedError
@@ -259,15 +291,16 @@ class UsbFraming(Framing):
         self.max_container_bytes = max_container_bytes
 
     def _parse(self) -> Frame | None:
-        if len(self._buf) < HEADER_BYTES:
+        window = self._window()
+        if len(window) < HEADER_BYTES:
             return None
-        header = parse_header(self._buf[:HEADER_BYTES], self.max_container_bytes)
+        header = parse_header(window[:HEADER_BYTES], self.max_container_bytes)
         if header.type == ContainerType.DATA:
-            del self._buf[:HEADER_BYTES]
+            self._skip(HEADER_BYTES)
             self._ready.append(DataPacket(header.transaction_id, header.payload_bytes, True))
             self._start_payload(header.payload_bytes, True)
             return DataHead(header.code, header.transaction_id, header.payload_bytes)
-        if len(self._buf) < header.length:
+        if len(window) < header.length:
             return None
         c = parse_container(self._take(header.length))
         if c.type == ContainerType.COMMAND:
@@ -311,9 +344,10 @@ class PtpIpFraming(Framing):
         self.max_control_packet_bytes = max_control_packet_bytes
 
     def _parse(self) -> Frame | None:
-        if len(self._buf) < 8:
+        window = self._window()
+        if len(window) < 8:
             return None
-        length, kind = struct.unpack_from("<II", self._buf)
+        length, kind = struct.unpack_from("<II", window)
         if length < 8:
             raise ProtocolError(f"PTP/IP packet length {length} is shorter than its header")
         if not 1 <= kind <= 14:
@@ -321,10 +355,10 @@ class PtpIpFraming(Framing):
         if kind in (ip.DATA, ip.END_DATA):
             if length < 12:
                 raise ProtocolError("PTP/IP data packet without its transaction id")
-            if len(self._buf) < 12:
+            if len(window) < 12:
                 return None
-            (tid,) = _U32.unpack_from(self._buf, 8)
-            del self._buf[:12]
+            (tid,) = _U32.unpack_from(window, 8)
+            self._skip(12)
             last = kind == ip.END_DATA
             self._start_payload(length - 12, last)
             return DataPacket(tid, length - 12, last)
@@ -332,7 +366,7 @@ class PtpIpFraming(Framing):
             raise ProtocolError(
                 f"PTP/IP packet of {length} bytes exceeds the {self.max_control_packet_bytes}-byte limit"
             )
-        if len(self._buf) < length:
+        if len(window) < length:
             return None
         body = self._take(length)[8:]  # consumed whole before its body is parsed: a bad body leaves the stream in step
         if kind == ip.START_DATA:
