@@ -20,6 +20,15 @@ connection). A third link would need a framing, not another state machine.
 the data-out phase); `receive_data(bytes)` takes what arrived in any chunking
 (split headers, several containers in one read); `next_event()` returns the
 next `Event` or `NEED_DATA`. A transaction ends with `ResponseReceived`.
+`receive_data` may be given a view into a read buffer the caller reuses: the
+engine frames it in place and copies what it has not framed yet before it
+returns NEED_DATA or ends a transaction (each payload byte is copied once).
+
+**Use (responder).** `next_event()` gives `CommandReceived`, whose `data_out`
+says whether a data-out phase follows (PTP/IP says so on the wire; USB does
+not, so the responder asks `expects_data_out(code)`), then that phase; then
+`send_data_start`/`send_data_piece` (or `send_data`) and `send_response`
+give the reply's bytes, or `drop_reply()` says none will come.
 
 **Bounds and errors.** A data phase is streamed as `DataReceived` pieces of
 what has arrived; only control containers wait whole, and they are small
