@@ -21,15 +21,18 @@ ROOMS = {"capture": "mca.capture", "processing": "mca.processing", "devices": "m
 IO_LIBRARIES = frozenset(
     {"rerun", "rerun_cli", "usb", "libusb_package", "serial", "typer", "rich", "rawpy", "tifffile", "socket", "sqlite3"}
 )
-# The pure protocol codecs: bytes in, messages out; no transport library.
+# The pure protocol codecs and the sans-I/O transaction engine: bytes in, messages out; no transport library.
 CODEC_MODULES = (
     "devices/ptp/codec.py",
     "devices/ptp/codes.py",
     "devices/ptp/datasets.py",
+    "devices/ptp/engine.py",
     "devices/ptp/events.py",
+    "devices/ptp/framing.py",
     "devices/ptp/liveview.py",
     "devices/ptp/policy.py",
     "devices/ptp/properties.py",
+    "devices/ptp/ptpip_packets.py",
     "devices/rail/grbl_protocol.py",
 )
 CODEC_FORBIDDEN = frozenset({"usb", "libusb_package", "serial", "socket", "select", "threading", "subprocess"})

@@ -7,7 +7,7 @@ The parsers and their documented errors:
 | PTP containers | `codec.parse_container`, `parse_header`, `parse_params` | `ProtocolError` |
 | PTP datasets | `datasets.parse_device_info`, `parse_storage_info`, `parse_object_info`, `parse_prop_desc`, `parse_prop_value` | `ProtocolError` |
 | EOS event lists | `events.parse_eos_events` | `ProtocolError` |
-| PTP/IP packets | `transport_ptpip.parse_packet_header`, `parse_init_command_request`, `parse_init_command_ack`, `parse_operation_request`, `parse_operation_response`, `parse_event_packet`, `parse_start_data` | `ProtocolError` |
+| PTP/IP packets | `ptpip_packets.parse_packet_header`, `parse_init_command_request`, `parse_init_command_ack`, `parse_operation_request`, `parse_operation_response`, `parse_event_packet`, `parse_start_data` | `ProtocolError` |
 | CR2 / TIFF / PNG / JPEG / PPM files | `capture.raw.read_raw`, `capture.raw.image_size_px` | `RawReadError` (none for `image_size_px`) |
 | camera profiles | `capture.profiles.load_profile_file`, `processing.camera.profile_from_mapping` | `ProfileError` |
 | the config file | `capture.config.read_config_file` + `apply_file` | `ConfigError` |
@@ -162,7 +162,7 @@ def _ptp_seeds() -> dict[str, list[bytes]]:
         EosRequestObjectTransfer,
         pack_eos_events,
     )
-    from mca.devices.ptp.transport_ptpip import (
+    from mca.devices.ptp.ptpip_packets import (
         pack_event_packet,
         pack_init_command_ack,
         pack_init_command_request,
@@ -271,7 +271,7 @@ def test_fuzz_eos_event_lists() -> None:
 @given(data=st.data())
 def _fuzz_ptpip(data: st.DataObject, meter: Meter) -> None:
     from mca.devices.ptp.codec import ProtocolError
-    from mca.devices.ptp.transport_ptpip import (
+    from mca.devices.ptp.ptpip_packets import (
         parse_event_packet,
         parse_init_command_ack,
         parse_init_command_request,

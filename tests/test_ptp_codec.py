@@ -73,7 +73,7 @@ from mca.devices.ptp.events import (
     parse_image_format,
 )
 from mca.devices.ptp.liveview import pack_viewfinder_data, parse_viewfinder_data
-from mca.devices.ptp.transport_ptpip import (
+from mca.devices.ptp.ptpip_packets import (
     pack_data_packet,
     pack_event_packet,
     pack_init_command_ack,

@@ -89,6 +89,19 @@ def test_hexdump_parser_reads_both_log_formats_and_directions() -> None:
     assert (c.direction, len(c.data), d.direction, len(d.data)) == (OUT, 16, IN, 12)
 
 
+def test_a_hexdump_whose_short_last_line_reads_like_hex_is_cut_to_its_announced_count() -> None:
+    """From the 60D pastebin log (line 2638): 207 bytes, the last line holds 15 and its text column starts "42"."""
+    log = (
+        "0.18 gphoto2-port(2): Could only read 207 out of 512 byte(s)\n"
+        "0.18 gphoto2-port(3): Hexdump of 207 = 0xcf bytes follows:\n"
+        + "".join(f"{16 * k:04x}  " + " ".join(["00"] * 16) + " ................\n" for k in range(12))
+        + "00c0  34 32 32 31 39 39 00 08-00 00 00 00 00 00 00 422199.........\n"
+    )
+    (block,) = parse_hexdumps(log)
+    assert (len(block.data), block.complete) == (207, True)
+    assert block.data[-15:] == bytes.fromhex("34 32 32 31 39 39 00 08 00 00 00 00 00 00 00")
+
+
 @pytest.mark.parametrize("name", list(SESSIONS))
 def test_every_recorded_container_is_complete_and_paired(name: str) -> None:
     t = trace(name)
@@ -97,7 +110,7 @@ def test_every_recorded_container_is_complete_and_paired(name: str) -> None:
     assert commands and all(c.direction == OUT for c in commands)
     assert all(r.direction == IN for r in responses)
     complete = [x for x in t.transactions if x.command is not None and x.response is not None]
-    assert len(complete) >= len(commands) - 1  # the pastebin copy ends in the middle of the last reply
+    assert len(complete) == len(commands)  # every reply, also after a hexdump whose last line is short
     for x in complete:
         assert x.response.transaction_id == x.command.transaction_id
 

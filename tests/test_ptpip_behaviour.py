@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 
+from mca.devices.ptp import ptpip_packets as pk
 from mca.devices.ptp import transport_ptpip as ip
 from mca.devices.ptp.codec import ProtocolError
 from mca.devices.ptp.transport import DeviceDisconnected, TransportError, TransportTimeout
@@ -50,70 +51,70 @@ def data(tid: int, payload: bytes, end: bool = True) -> bytes:
 
 
 def test_packets_have_the_standard_layout() -> None:
-    assert ip.pack_packet(13) == bytes.fromhex("08000000 0d000000")
-    req = ip.pack_init_command_request(GUID, "mca")
+    assert pk.pack_packet(13) == bytes.fromhex("08000000 0d000000")
+    req = pk.pack_init_command_request(GUID, "mca")
     assert req == packet(1, GUID + utf16z("mca") + struct.pack("<I", 0x00010000))
     with pytest.raises(ValueError, match="16 bytes"):
-        ip.pack_init_command_request(b"short", "mca")
-    parsed = ip.parse_init_command_request(req[8:])
+        pk.pack_init_command_request(b"short", "mca")
+    parsed = pk.parse_init_command_request(req[8:])
     assert (parsed.guid, parsed.name, parsed.version) == (GUID, "mca", 0x00010000)
-    assert ip.parse_init_command_request(GUID + utf16z("old")).version == 0  # no version field
-    ack = ip.pack_init_command_ack(7, CAMERA_GUID, "Canon EOS 70D")
+    assert pk.parse_init_command_request(GUID + utf16z("old")).version == 0  # no version field
+    ack = pk.pack_init_command_ack(7, CAMERA_GUID, "Canon EOS 70D")
     assert ack == packet(
         2, struct.pack("<I", 7) + CAMERA_GUID + utf16z("Canon EOS 70D") + struct.pack("<I", 0x00010000)
     )
-    assert ip.parse_init_command_ack(ack[8:]) == (7, CAMERA_GUID, "Canon EOS 70D")
+    assert pk.parse_init_command_ack(ack[8:]) == (7, CAMERA_GUID, "Canon EOS 70D")
     with pytest.raises(ProtocolError):
-        ip.parse_init_command_ack(struct.pack("<I", 7) + CAMERA_GUID + b"A\x00")  # name without its NUL
+        pk.parse_init_command_ack(struct.pack("<I", 7) + CAMERA_GUID + b"A\x00")  # name without its NUL
     # OperationRequest: u32 dataphase, u16 code, u32 transaction id, params
-    op = ip.pack_operation_request(0x1009, 5, (0x1234,), dataphase=2)
+    op = pk.pack_operation_request(0x1009, 5, (0x1234,), dataphase=2)
     assert op == packet(6, struct.pack("<IHII", 2, 0x1009, 5, 0x1234))
-    phase, command = ip.parse_operation_request(op[8:])
+    phase, command = pk.parse_operation_request(op[8:])
     assert (phase, command.type, command.code, command.transaction_id, command.params) == (2, 1, 0x1009, 5, (0x1234,))
-    assert ip.pack_operation_request(0x1001, 1) == packet(6, struct.pack("<IHI", 1, 0x1001, 1))
+    assert pk.pack_operation_request(0x1001, 1) == packet(6, struct.pack("<IHI", 1, 0x1001, 1))
     with pytest.raises(ProtocolError, match="at most 5"):
-        ip.pack_operation_request(0x1001, 1, (0,) * 6)
-    ip.pack_operation_request(0x1001, 1, (0,) * 5)
+        pk.pack_operation_request(0x1001, 1, (0,) * 6)
+    pk.pack_operation_request(0x1001, 1, (0,) * 5)
     with pytest.raises(ProtocolError, match="shorter than 10"):
-        ip.parse_operation_request(b"\x00" * 9)
-    assert ip.parse_operation_request(b"\x00" * 10)[1].params == ()
-    assert ip.pack_operation_response(0x2001, 5, (1, 2)) == response(0x2001, 5, 1, 2)
-    got = ip.parse_operation_response(response(0x2019, 9, 3)[8:])
+        pk.parse_operation_request(b"\x00" * 9)
+    assert pk.parse_operation_request(b"\x00" * 10)[1].params == ()
+    assert pk.pack_operation_response(0x2001, 5, (1, 2)) == response(0x2001, 5, 1, 2)
+    got = pk.parse_operation_response(response(0x2019, 9, 3)[8:])
     assert (got.type, got.code, got.transaction_id, got.params) == (3, 0x2019, 9, (3,))
     with pytest.raises(ProtocolError, match="shorter than 6"):
-        ip.parse_operation_response(b"\x00" * 5)
-    assert ip.parse_operation_response(b"\x01\x20" + b"\x00" * 4).params == ()
-    ev = ip.pack_event_packet(0x4002, 3, (9,))
+        pk.parse_operation_response(b"\x00" * 5)
+    assert pk.parse_operation_response(b"\x01\x20" + b"\x00" * 4).params == ()
+    ev = pk.pack_event_packet(0x4002, 3, (9,))
     assert ev == packet(8, struct.pack("<HII", 0x4002, 3, 9))
-    got = ip.parse_event_packet(ev[8:])
+    got = pk.parse_event_packet(ev[8:])
     assert (got.type, got.code, got.params) == (4, 0x4002, (9,))
     with pytest.raises(ProtocolError):
-        ip.parse_event_packet(struct.pack("<HI4I", 0x4002, 3, 1, 2, 3, 4))  # four params: too many for an event
+        pk.parse_event_packet(struct.pack("<HI4I", 0x4002, 3, 1, 2, 3, 4))  # four params: too many for an event
     with pytest.raises(ProtocolError, match="shorter than 6"):
-        ip.parse_event_packet(b"\x00" * 5)
-    assert ip.pack_start_data(4, 2**33) == packet(9, struct.pack("<IQ", 4, 2**33))
-    assert ip.parse_start_data(struct.pack("<IQ", 4, 2**33)) == (4, 2**33)
-    assert ip.parse_start_data(struct.pack("<II", 4, 99)) == (4, 99)  # a short (u32) length, as some bodies send
+        pk.parse_event_packet(b"\x00" * 5)
+    assert pk.pack_start_data(4, 2**33) == packet(9, struct.pack("<IQ", 4, 2**33))
+    assert pk.parse_start_data(struct.pack("<IQ", 4, 2**33)) == (4, 2**33)
+    assert pk.parse_start_data(struct.pack("<II", 4, 99)) == (4, 99)  # a short (u32) length, as some bodies send
     with pytest.raises(ProtocolError, match="shorter than 8"):
-        ip.parse_start_data(b"\x00" * 7)
-    assert ip.pack_data_packet(4, b"abc", end=True) == packet(12, struct.pack("<I", 4) + b"abc")
-    assert ip.pack_data_packet(4, memoryview(b"ab"), end=False) == packet(10, struct.pack("<I", 4) + b"ab")
+        pk.parse_start_data(b"\x00" * 7)
+    assert pk.pack_data_packet(4, b"abc", end=True) == packet(12, struct.pack("<I", 4) + b"abc")
+    assert pk.pack_data_packet(4, memoryview(b"ab"), end=False) == packet(10, struct.pack("<I", 4) + b"ab")
 
 
 def test_packet_header_bounds() -> None:
-    assert ip.parse_packet_header(packet(7, b"x" * 10)) == (10, 7)
-    assert ip.parse_packet_header(struct.pack("<II", 8, 1)) == (0, 1)
-    assert ip.parse_packet_header(struct.pack("<II", 8, 14)) == (0, 14)
+    assert pk.parse_packet_header(packet(7, b"x" * 10)) == (10, 7)
+    assert pk.parse_packet_header(struct.pack("<II", 8, 1)) == (0, 1)
+    assert pk.parse_packet_header(struct.pack("<II", 8, 14)) == (0, 14)
     with pytest.raises(ProtocolError, match="needs 8 bytes, got 7"):
-        ip.parse_packet_header(b"\x00" * 7)
+        pk.parse_packet_header(b"\x00" * 7)
     with pytest.raises(ProtocolError, match="length 7 is shorter"):
-        ip.parse_packet_header(struct.pack("<II", 7, 1))
+        pk.parse_packet_header(struct.pack("<II", 7, 1))
     for kind in (0, 15):
         with pytest.raises(ProtocolError, match=f"unknown PTP/IP packet type {kind}"):
-            ip.parse_packet_header(struct.pack("<II", 8, kind))
-    assert ip.parse_packet_header(struct.pack("<II", 108, 10), max_bytes=100) == (100, 10)
+            pk.parse_packet_header(struct.pack("<II", 8, kind))
+    assert pk.parse_packet_header(struct.pack("<II", 108, 10), max_bytes=100) == (100, 10)
     with pytest.raises(ProtocolError, match="109 bytes exceeds the 100-byte limit"):
-        ip.parse_packet_header(struct.pack("<II", 109, 10), max_bytes=100)
+        pk.parse_packet_header(struct.pack("<II", 109, 10), max_bytes=100)
 
 
 def test_host_guid_is_stable_per_machine_and_falls_back_to_the_hostname(tmp_path: Path) -> None:
@@ -324,7 +325,7 @@ def test_pings_are_answered_and_late_replies_of_given_up_transactions_discarded(
 
     def then(t):
         t.on_stale_data = lambda code, tid, payload: stale.append((code, tid, payload))
-        t.cmd.send(ip.pack_operation_request(0x9116, 4))  # as if transaction 4 had timed out
+        t.cmd.send(pk.pack_operation_request(0x9116, 4))  # as if transaction 4 had timed out
         t._codes[4] = 0x9116
         return t.transaction(0x1001, 5)
 
@@ -429,16 +430,16 @@ def test_old_events_are_dropped_beyond_the_queue() -> None:
 
 
 def test_the_standard_port_and_the_default_data_limit() -> None:
-    assert ip.DEFAULT_PORT == 15740  # CIPA DC-005
-    assert (ip.INIT_COMMAND_REQUEST, ip.INIT_COMMAND_ACK, ip.INIT_EVENT_REQUEST, ip.INIT_EVENT_ACK, ip.INIT_FAIL) == (
+    assert pk.DEFAULT_PORT == 15740  # CIPA DC-005
+    assert (pk.INIT_COMMAND_REQUEST, pk.INIT_COMMAND_ACK, pk.INIT_EVENT_REQUEST, pk.INIT_EVENT_ACK, pk.INIT_FAIL) == (
         1,
         2,
         3,
         4,
         5,
     )
-    assert (ip.OPERATION_REQUEST, ip.START_DATA, ip.END_DATA, ip.PING, ip.PONG) == (6, 9, 12, 13, 14)
-    request = ip.InitCommandRequest(GUID, "x", 1)
+    assert (pk.OPERATION_REQUEST, pk.START_DATA, pk.END_DATA, pk.PING, pk.PONG) == (6, 9, 12, 13, 14)
+    request = pk.InitCommandRequest(GUID, "x", 1)
     from dataclasses import FrozenInstanceError
 
     with pytest.raises(FrozenInstanceError):

@@ -380,17 +380,16 @@ def test_ptpip_host_sends_the_same_guid_on_every_connection(monkeypatch: pytest.
 
 def test_ptpip_host_reads_the_event_channel_and_answers_pings() -> None:
     """A camera pings its initiator on the event connection; a host that never reads it never answers."""
-    from mca.devices.ptp.transport_ptpip import (
+    from mca.devices.ptp.ptpip_packets import (
         INIT_COMMAND_ACK,
         INIT_EVENT_ACK,
         PING,
         PONG,
-        PtpIpTransport,
-        _Conn,
         pack_event_packet,
         pack_init_command_ack,
         pack_packet,
     )
+    from mca.devices.ptp.transport_ptpip import PtpIpTransport, _Conn
 
     listener = socket.create_server(("127.0.0.1", 0))
     port = listener.getsockname()[1]

@@ -20,8 +20,9 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mca.devices.ptp.codec import HEADER_BYTES, Container, ProtocolError, parse_container, parse_header
+from mca.devices.ptp.codec import HEADER_BYTES, Container, ProtocolError, parse_header
 from mca.devices.ptp.codes import ContainerType, Op, Resp
+from mca.devices.ptp.framing import CommandFrame, DataEnd, DataHead, DataPiece, EventFrame, ResponseFrame, UsbFraming
 
 IN, OUT, UNKNOWN = "in", "out", "?"
 _HEX_LINE = re.compile(r"^([0-9a-fA-F]{4,8})  (.*)$")
@@ -141,6 +142,8 @@ def parse_hexdumps(text: str) -> list[HexBlock]:
             if c:
                 claimed = int(c.group(1))
                 break
+        if claimed is not None and claimed < len(data):
+            del data[claimed:]  # a short last line whose text column reads as hex ("... 39 00 08 ... 422199")
         blocks.append(HexBlock(start + 1, _direction(lines, start), bytes(data), claimed in (None, len(data))))
     return blocks
 
@@ -154,29 +157,46 @@ def _infer_direction(data: bytes) -> str:
 
 
 def assemble_containers(blocks: list[HexBlock]) -> list[TraceContainer]:
-    """Whole containers from the blocks: reads of one container across several blocks are joined, and a block
-    holding more than one container (a response read together with the end of a data phase) is split."""
-    partial: dict[str, tuple[int, bytearray]] = {}
+    """Whole containers from the blocks, framed as the transports frame them (`framing.UsbFraming`): reads of one
+    container across several blocks are joined, a block holding more than one container (a response read together
+    with the end of a data phase) is split, and a broken header drops what that direction had buffered."""
+    framings: dict[str, UsbFraming] = {}
+    started: dict[str, int] = {}
+    payloads: dict[str, tuple[DataHead, bytearray]] = {}
     out: list[TraceContainer] = []
     for block in blocks:
         direction = block.direction if block.direction != UNKNOWN else _infer_direction(block.data)
         if direction == UNKNOWN:
             continue
-        line, buf = partial.pop(direction, (block.line, bytearray()))
-        buf += block.data
-        while len(buf) >= HEADER_BYTES:
+        framing = framings.setdefault(direction, UsbFraming())
+        if framing.at_boundary:
+            started[direction] = block.line
+        framing.receive_data(block.data)
+        while True:
             try:
-                header = parse_header(buf[:HEADER_BYTES])
+                frame = framing.next_frame()
             except ProtocolError:
-                buf.clear()
+                framing.clear()
+                payloads.pop(direction, None)
                 break
-            if len(buf) < header.length:
+            if frame is None:
                 break
-            out.append(TraceContainer(line, direction, parse_container(bytes(buf[: header.length]))))
-            del buf[: header.length]
-            line = block.line
-        if buf:
-            partial[direction] = (line, buf)
+            container: Container | None = None
+            if isinstance(frame, DataHead):
+                payloads[direction] = (frame, bytearray())
+            elif isinstance(frame, DataPiece):
+                payloads[direction][1].extend(frame.data)
+            elif isinstance(frame, DataEnd):
+                head, payload = payloads.pop(direction)
+                container = Container(ContainerType.DATA, head.code or 0, head.transaction_id, (), bytes(payload))
+            elif isinstance(frame, CommandFrame | ResponseFrame | EventFrame):
+                kind = {CommandFrame: ContainerType.COMMAND, ResponseFrame: ContainerType.RESPONSE}
+                container = Container(
+                    kind.get(type(frame), ContainerType.EVENT), frame.code, frame.transaction_id, frame.params
+                )
+            if container is not None:
+                out.append(TraceContainer(started[direction], direction, container))
+                started[direction] = block.line
     return out
 
 

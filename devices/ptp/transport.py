@@ -7,6 +7,16 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from mca.devices.ptp.codec import Container
+from mca.devices.ptp.engine import (
+    NEED_DATA,
+    DataReceived,
+    DataStarted,
+    Initiator,
+    LateDataReceived,
+    LateReplyDiscarded,
+    PingReceived,
+    ResponseReceived,
+)
 
 #: Receives each piece of a data-in phase as it arrives (streamed to a file without holding it all).
 DataSink = Callable[[memoryview], None]
@@ -98,3 +108,38 @@ class Transport(ABC):
     @abstractmethod
     def close(self) -> None:
         """Release the device; safe to call twice."""
+
+
+def run_to_response(
+    transport: Transport,
+    engine: Initiator,
+    read: Callable[[], bytes | memoryview],
+    sink: DataSink | None,
+    send: Callable[[bytes], None] | None = None,
+) -> Response:
+    """Feed `read()` to the engine until the open transaction's response: collect or stream the data-in phase,
+    count late replies and hand their data to `on_stale_data`, and answer pings with `send` (PTP/IP)."""
+    data: bytearray | None = None
+    got = 0
+    while True:
+        event = engine.next_event()
+        if event is NEED_DATA:
+            engine.receive_data(read())
+        elif isinstance(event, DataReceived):
+            if data is None:
+                assert sink is not None
+                sink(memoryview(event.data))
+            else:
+                data[got : got + len(event.data)] = event.data
+            got += len(event.data)
+        elif isinstance(event, DataStarted):
+            if sink is None:
+                data = bytearray(event.total_bytes)
+        elif isinstance(event, ResponseReceived):
+            return Response(event.code, event.params, bytes(data) if data is not None else None, got)
+        elif isinstance(event, PingReceived) and send is not None:
+            send(engine.pong())
+        elif isinstance(event, LateReplyDiscarded):
+            transport.counters.stale_replies_discarded += 1
+        elif isinstance(event, LateDataReceived) and transport.on_stale_data is not None:
+            transport.on_stale_data(event.code, event.transaction_id, event.data)

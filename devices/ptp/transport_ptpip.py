@@ -1,9 +1,9 @@
-"""PTP/IP (PTP over TCP, port 15740): pure packet pack/parse functions and a socket client transport.
+"""PTP/IP (PTP over TCP, port 15740): the socket client transport, a thin shell around the transaction engine.
 
-Packets are u32 length, u32 type, body. The command/data connection carries
-OperationRequest, StartData/Data/EndData and OperationResponse; the event
-connection carries Event packets. The simulated camera's server reuses the
-same functions from the other side.
+The packets are `devices.ptp.ptpip_packets`; their framing, the phases, the
+transaction ids and late replies are the engine's (`devices.ptp.engine` with
+`framing.PtpIpFraming`). This shell connects, introduces the host, moves
+bytes and answers pings.
 
 The host introduces itself with the same GUID on every connection (a camera
 asks its user to approve each new host; libgphoto2 stores its GUID too): by
@@ -22,28 +22,40 @@ import struct
 import threading
 import uuid
 from collections import deque
-from dataclasses import dataclass
 from pathlib import Path
 
-from mca.devices.ptp.codec import Container, ProtocolError, Reader, is_older_transaction, parse_params
+from mca.devices.ptp.codec import Container, ProtocolError
 from mca.devices.ptp.codes import ContainerType
+from mca.devices.ptp.engine import NEED_DATA, EventReader, EventReceived, Initiator, PingReceived
+from mca.devices.ptp.framing import PtpIpFraming
 from mca.devices.ptp.policy import DEFAULT_POLICY, PtpPolicy
-from mca.devices.ptp.transport import DeviceDisconnected, Response, Transport, TransportError, TransportTimeout
+from mca.devices.ptp.ptpip_packets import (
+    DEFAULT_PORT,
+    INIT_COMMAND_ACK,
+    INIT_EVENT_ACK,
+    INIT_EVENT_REQUEST,
+    INIT_FAIL_REASONS,
+    MAX_CONTROL_PACKET_BYTES,
+    pack_init_command_request,
+    pack_packet,
+    parse_init_command_ack,
+    parse_packet_header,
+)
+from mca.devices.ptp.transport import (
+    DeviceDisconnected,
+    Response,
+    Transport,
+    TransportError,
+    TransportTimeout,
+    run_to_response,
+)
 
-DEFAULT_PORT = 15740
-PROTOCOL_VERSION = 0x00010000
-INIT_COMMAND_REQUEST, INIT_COMMAND_ACK, INIT_EVENT_REQUEST, INIT_EVENT_ACK, INIT_FAIL = 1, 2, 3, 4, 5
-OPERATION_REQUEST, OPERATION_RESPONSE, EVENT, START_DATA, DATA, CANCEL, END_DATA, PING, PONG = range(6, 15)
-DATAPHASE_NONE_OR_IN, DATAPHASE_OUT = 1, 2
-#: Largest control packet accepted; data packets are bounded by the transaction's own limit.
-MAX_CONTROL_PACKET_BYTES = 64 * 1024
-MAX_DATA_PACKET_BYTES = 64 * 1024 * 1024
 #: Bytes received per recv call: a packet's claimed length is never allocated before its bytes arrive.
 RECV_PIECE_BYTES = 64 * 1024
+#: Bytes received per recv call on the command connection during a transaction (a download's pieces).
+RECV_DATA_PIECE_BYTES = 1024 * 1024
 #: Events kept for `read_event`; older ones are dropped beyond this.
 MAX_QUEUED_EVENTS = 256
-_HDR = struct.Struct("<II")
-INIT_FAIL_REASONS = {1: "rejected", 2: "busy (another computer holds the camera)", 3: "unspecified"}
 
 
 def host_guid(machine_id_path: Path = Path("/etc/machine-id")) -> bytes:
@@ -59,134 +71,31 @@ def host_guid(machine_id_path: Path = Path("/etc/machine-id")) -> bytes:
     return uuid.uuid5(uuid.NAMESPACE_OID, f"mca-ptpip-host:{machine}:{user}").bytes
 
 
-def pack_packet(kind: int, body: bytes = b"") -> bytes:
-    return _HDR.pack(8 + len(body), kind) + body
-
-
-def parse_packet_header(buf: bytes | memoryview, max_bytes: int = MAX_DATA_PACKET_BYTES) -> tuple[int, int]:
-    """(body length, type) from the 8-byte header, checked against bounds."""
-    if len(buf) < 8:
-        raise ProtocolError(f"PTP/IP header needs 8 bytes, got {len(buf)}")
-    length, kind = _HDR.unpack_from(buf)
-    if length < 8:
-        raise ProtocolError(f"PTP/IP packet length {length} is shorter than its header")
-    if not 1 <= kind <= 14:
-        raise ProtocolError(f"unknown PTP/IP packet type {kind}")
-    if length - 8 > max_bytes:
-        raise ProtocolError(f"PTP/IP packet of {length} bytes exceeds the {max_bytes}-byte limit")
-    return length - 8, kind
-
-
-def _utf16z(text: str) -> bytes:
-    return text.encode("utf-16-le") + b"\x00\x00"
-
-
-def _read_utf16z(r: Reader) -> str:
-    units = []
-    while True:
-        unit = r.u16()
-        if unit == 0:
-            break
-        units.append(unit)
-    return struct.pack(f"<{len(units)}H", *units).decode("utf-16-le", errors="replace")
-
-
-@dataclass(frozen=True)
-class InitCommandRequest:
-    guid: bytes
-    name: str
-    version: int
-
-
-def pack_init_command_request(guid: bytes, name: str, version: int = PROTOCOL_VERSION) -> bytes:
-    if len(guid) != 16:
-        raise ValueError("a PTP/IP GUID has 16 bytes")
-    return pack_packet(INIT_COMMAND_REQUEST, guid + _utf16z(name) + struct.pack("<I", version))
-
-
-def parse_init_command_request(body: bytes) -> InitCommandRequest:
-    r = Reader(body)
-    guid = r.take(16)
-    name = _read_utf16z(r)
-    version = r.u32() if r.remaining >= 4 else 0
-    return InitCommandRequest(guid, name, version)
-
-
-def pack_init_command_ack(connection_id: int, guid: bytes, name: str, version: int = PROTOCOL_VERSION) -> bytes:
-    return pack_packet(
-        INIT_COMMAND_ACK, struct.pack("<I", connection_id) + guid + _utf16z(name) + struct.pack("<I", version)
-    )
-
-
-def parse_init_command_ack(body: bytes) -> tuple[int, bytes, str]:
-    r = Reader(body)
-    return r.u32(), r.take(16), _read_utf16z(r)
-
-
-def pack_operation_request(code: int, transaction_id: int, params: tuple[int, ...] = (), dataphase: int = 1) -> bytes:
-    if len(params) > 5:
-        raise ProtocolError("at most 5 parameters")
-    return pack_packet(
-        OPERATION_REQUEST,
-        struct.pack("<IHI", dataphase, code, transaction_id) + struct.pack(f"<{len(params)}I", *params),
-    )
-
-
-def parse_operation_request(body: bytes) -> tuple[int, Container]:
-    """(dataphase, command container)."""
-    if len(body) < 10:
-        raise ProtocolError(f"OperationRequest of {len(body)} bytes is shorter than 10")
-    dataphase, code, tid = struct.unpack_from("<IHI", body)
-    return dataphase, Container(ContainerType.COMMAND, code, tid, parse_params(body[10:]))
-
-
-def pack_operation_response(code: int, transaction_id: int, params: tuple[int, ...] = ()) -> bytes:
-    return pack_packet(
-        OPERATION_RESPONSE, struct.pack("<HI", code, transaction_id) + struct.pack(f"<{len(params)}I", *params)
-    )
-
-
-def parse_operation_response(body: bytes) -> Container:
-    if len(body) < 6:
-        raise ProtocolError(f"OperationResponse of {len(body)} bytes is shorter than 6")
-    code, tid = struct.unpack_from("<HI", body)
-    return Container(ContainerType.RESPONSE, code, tid, parse_params(body[6:]))
-
-
-def pack_event_packet(code: int, transaction_id: int, params: tuple[int, ...] = ()) -> bytes:
-    return pack_packet(EVENT, struct.pack("<HI", code, transaction_id) + struct.pack(f"<{len(params)}I", *params))
-
-
-def parse_event_packet(body: bytes) -> Container:
-    if len(body) < 6:
-        raise ProtocolError(f"Event packet of {len(body)} bytes is shorter than 6")
-    code, tid = struct.unpack_from("<HI", body)
-    return Container(ContainerType.EVENT, code, tid, parse_params(body[6:], 3))
-
-
-def pack_start_data(transaction_id: int, total_bytes: int) -> bytes:
-    return pack_packet(START_DATA, struct.pack("<IQ", transaction_id, total_bytes))
-
-
-def parse_start_data(body: bytes) -> tuple[int, int]:
-    if len(body) < 8:
-        raise ProtocolError(f"StartData of {len(body)} bytes is shorter than 8")
-    if len(body) >= 12:
-        return struct.unpack_from("<IQ", body)
-    return struct.unpack_from("<II", body)
-
-
-def pack_data_packet(transaction_id: int, payload: bytes | memoryview, end: bool) -> bytes:
-    return _HDR.pack(12 + len(payload), END_DATA if end else DATA) + struct.pack("<I", transaction_id) + bytes(payload)
-
-
 class _Conn:
-    """Blocking socket helpers with exact reads."""
+    """Blocking socket helpers: exact reads for the handshake, bounded reads to feed an engine."""
 
-    def __init__(self, sock: socket.socket, name: str) -> None:
+    def __init__(self, sock: socket.socket, name: str, piece_bytes: int = RECV_PIECE_BYTES) -> None:
         self.sock, self.name = sock, name
+        self._rx = bytearray(piece_bytes)
+        self._rx_view = memoryview(self._rx)
 
-    def send(self, data: bytes | memoryview) -> None:
+    def _recv_once(self, view: memoryview) -> int:
+        """One recv into `view`: at least one byte, or the timeout or disconnect as a transport error."""
+        try:
+            n = self.sock.recv_into(view)
+        except TimeoutError as exc:
+            raise TransportTimeout(f"{self.name} did not answer in time") from exc
+        except OSError as exc:
+            raise DeviceDisconnected(f"{self.name}: connection lost ({exc})") from exc
+        if n == 0:
+            raise DeviceDisconnected(f"{self.name} closed the connection")
+        return n
+
+    def recv_some(self) -> memoryview:
+        """What has arrived, at most one piece (valid until the next call; the engine copies what it keeps)."""
+        return self._rx_view[: self._recv_once(self._rx_view)]
+
+    def send(self, data: bytes | bytearray | memoryview) -> None:
         try:
             self.sock.sendall(data)
         except OSError as exc:
@@ -197,15 +106,7 @@ class _Conn:
     def recv_into(self, view: memoryview) -> None:
         got = 0
         while got < len(view):
-            try:
-                n = self.sock.recv_into(view[got:])
-            except TimeoutError as exc:
-                raise TransportTimeout(f"{self.name} did not answer in time") from exc
-            except OSError as exc:
-                raise DeviceDisconnected(f"{self.name}: connection lost ({exc})") from exc
-            if n == 0:
-                raise DeviceDisconnected(f"{self.name} closed the connection")
-            got += n
+            got += self._recv_once(view[got:])
 
     def recv_exact(self, n: int) -> bytes:
         """Exactly `n` bytes, received in pieces of at most RECV_PIECE_BYTES (nothing allocated up front)."""
@@ -240,8 +141,9 @@ class PtpIpTransport(Transport):
         self.timeout_s = policy.transaction_timeout_s if timeout_s is None else timeout_s
         self.guid = guid if guid is not None else host_guid()
         self._closed = False
-        self._desynced = False  # a packet was cut mid-way: the stream cannot be read on
-        self._codes: dict[int, int] = {}
+        # The transaction state machine and the packets' framing live in the engine; this shell moves bytes.
+        self.engine = Initiator(PtpIpFraming(), name=self.name, stale_replies_max=policy.stale_replies_max)
+        self._codes = self.engine.sent_codes  # operation code per recent transaction id (late data is handed on)
         self._events: deque[Container] = deque(maxlen=MAX_QUEUED_EVENTS)
         self._event_ready = threading.Condition()
         self._event_thread: threading.Thread | None = None
@@ -253,7 +155,7 @@ class PtpIpTransport(Transport):
                 f"cannot reach {self.name}: {exc}; is the camera (or `mca camera serve-sim`) running?"
             ) from exc
         cmd.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        self.cmd = _Conn(cmd, self.name)
+        self.cmd = _Conn(cmd, self.name, RECV_DATA_PIECE_BYTES)
         self.cmd.send(pack_init_command_request(self.guid, name))
         kind, body = self.cmd.recv_packet()
         if kind != INIT_COMMAND_ACK:
@@ -282,23 +184,29 @@ class PtpIpTransport(Transport):
 
     # -- the event connection, read all the time ----------------------------------------------------------------
     def _read_events(self) -> None:
+        reader = EventReader(PtpIpFraming(), self.name)
         while not self._closed:
             try:
-                kind, body = self.evt.recv_packet()
+                event = reader.next_event()
+            except ProtocolError:
+                if reader.framing.broken:
+                    break
+                continue  # a malformed event, read whole: skipped
+            try:
+                if event is NEED_DATA:
+                    reader.receive_data(self.evt.recv_some())
+                elif isinstance(event, PingReceived):
+                    self.evt.send(reader.pong())
+                elif isinstance(event, EventReceived):
+                    with self._event_ready:
+                        self._events.append(
+                            Container(ContainerType.EVENT, event.code, event.transaction_id, event.params)
+                        )
+                        self._event_ready.notify_all()
             except TransportTimeout:
                 continue
-            except (TransportError, ProtocolError, OSError):
+            except (TransportError, OSError):
                 break
-            try:
-                if kind == PING:
-                    self.evt.send(pack_packet(PONG))
-                elif kind == EVENT:
-                    event = parse_event_packet(body)
-                    with self._event_ready:
-                        self._events.append(event)
-                        self._event_ready.notify_all()
-            except (TransportError, ProtocolError):
-                continue
         with self._event_ready:
             self._event_ready.notify_all()
 
@@ -309,10 +217,6 @@ class PtpIpTransport(Transport):
             return self._events.popleft() if self._events else None
 
     # -- transactions ----------------------------------------------------------------------------------------
-    def _recv_header(self, max_bytes: int) -> tuple[int, int]:
-        raw = self.cmd.recv_exact(8)
-        return parse_packet_header(raw, max_bytes)
-
     def transaction(
         self,
         code,
@@ -326,102 +230,20 @@ class PtpIpTransport(Transport):
     ) -> Response:
         if self._closed:
             raise DeviceDisconnected(f"{self.name} is closed; reconnect")
-        self._codes[transaction_id] = code  # a late reply's data is handed on with its operation code
-        while len(self._codes) > 64:
-            del self._codes[next(iter(self._codes))]
+        engine = self.engine
         self.cmd.sock.settimeout(self.timeout_s if timeout_s is None else timeout_s)
-        self.cmd.send(
-            pack_operation_request(
-                code, transaction_id, tuple(params), DATAPHASE_OUT if data_out is not None else DATAPHASE_NONE_OR_IN
-            )
-        )
-        if data_out is not None:
-            self.cmd.send(pack_start_data(transaction_id, len(data_out)))
-            self.cmd.send(pack_data_packet(transaction_id, data_out, end=True))
-        total: int | None = None
-        got = 0
-        data: bytearray | None = None
-        stale = 0
-        stale_tid: int | None = None
-        stale_data = bytearray()
-        while True:
-            try:
-                body_len, kind = self._recv_header(max(max_data_bytes + 4, MAX_CONTROL_PACKET_BYTES))
-            except TransportTimeout:
-                if got or stale_tid is not None:
-                    self._desynced = True
-                raise
-            self._desynced = True  # until the packet is complete
-            if kind in (DATA, END_DATA):
-                if body_len < 4:
-                    raise ProtocolError(f"{self.name} sent a data packet without its transaction id")
-                (tid,) = struct.unpack("<I", self.cmd.recv_exact(4))
-                n = body_len - 4
-                if stale_tid is not None and tid == stale_tid:
-                    piece = self.cmd.recv_exact(n)
-                    if len(stale_data) + n <= 4 * 1024 * 1024:
-                        stale_data += piece
-                    self._desynced = False
-                    continue
-                if total is None:
-                    raise ProtocolError(f"{self.name} sent data without StartData")
-                if got + n > total:
-                    raise ProtocolError(f"{self.name} sent {got + n} data bytes after announcing {total}")
-                if sink is None:
-                    self.cmd.recv_into(memoryview(data)[got : got + n])  # type: ignore[arg-type]
-                else:
-                    remaining = n
-                    while remaining:
-                        piece = self.cmd.recv_exact(min(RECV_PIECE_BYTES * 16, remaining))
-                        sink(memoryview(piece))
-                        remaining -= len(piece)
-                got += n
-                self._desynced = False
-                continue
-            body = self.cmd.recv_exact(body_len)
-            self._desynced = False
-            if kind == START_DATA:
-                tid, announced = parse_start_data(body)
-                if tid != transaction_id:  # the data phase of a reply we gave up on
-                    stale_tid, stale_data = tid, bytearray()
-                    continue
-                total = announced
-                if total > max_data_bytes:
-                    raise ProtocolError(
-                        f"{self.name} announced {total} data bytes, more than the {max_data_bytes} expected"
-                    )
-                if sink is None:
-                    data = bytearray(total)
-                continue
-            if kind == OPERATION_RESPONSE:
-                resp = parse_operation_response(body)
-                if resp.transaction_id != transaction_id:
-                    if (
-                        is_older_transaction(resp.transaction_id, transaction_id)
-                        and stale < self.policy.stale_replies_max
-                    ):
-                        stale += 1
-                        self.counters.stale_replies_discarded += 1
-                        if stale_tid == resp.transaction_id and self.on_stale_data is not None and stale_data:
-                            stale_code = self._codes.get(resp.transaction_id, 0)
-                            self.on_stale_data(stale_code, resp.transaction_id, bytes(stale_data))
-                        stale_tid, stale_data = None, bytearray()
-                        continue
-                    raise ProtocolError(
-                        f"{self.name} answered transaction {resp.transaction_id}, expected {transaction_id}"
-                    )
-                if total is not None and got != total:
-                    raise ProtocolError(f"{self.name} sent {got} of the {total} data bytes it announced")
-                return Response(resp.code, resp.params, bytes(data) if data is not None else None, got)
-            if kind == PING:
-                self.cmd.send(pack_packet(PONG))
-                continue
-            raise ProtocolError(f"{self.name} sent PTP/IP packet type {kind} during a transaction")
+        for write in engine.send_command(
+            code, transaction_id, tuple(params), data_out=data_out, max_data_bytes=max_data_bytes
+        ):
+            self.cmd.send(write)
+        return run_to_response(self, engine, self.cmd.recv_some, sink, self.cmd.send)
 
     def recover(self, transaction_id: int | None = None) -> None:
         """A timeout between packets leaves the stream in step (a late reply is discarded by its transaction id);
-        a packet cut mid-way does not, and the link is closed (the session reconnects)."""
-        if self._desynced:
+        a packet or data phase cut mid-way does not, and the link is closed (the session reconnects)."""
+        if self.engine.in_step:
+            self.engine.abandon()
+        else:
             self.close()
 
     @property

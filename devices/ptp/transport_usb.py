@@ -1,11 +1,12 @@
 """PTP over USB (Still Image Capture class) on pyusb: device discovery, endpoints, class requests, bulk I/O.
 
-A thin shell around `devices.ptp.codec`: it moves bytes and keeps the USB
-rules (zero-length packets after full packets, stray ZLPs, bytes beyond the
-current container), and copes with what real bodies do: a stalled endpoint
-(EPIPE) is cleared and the read retried once if nothing was read yet; a reply
-to an earlier, given-up transaction is discarded (its data goes to
-`on_stale_data`); after a timeout the transaction is cancelled (class request
+A thin shell around the transaction engine (`devices.ptp.engine` with
+`framing.UsbFraming`), which frames the containers, checks the phases and
+transaction ids, keeps bytes beyond the current container and discards late
+replies. This shell moves bytes and keeps the USB rules (zero-length packets
+after full packets, stray ZLPs), and copes with what real bodies do: a stalled endpoint
+(EPIPE) is cleared and the read retried once if nothing was read yet; the data
+of a late reply goes to `on_stale_data`; after a timeout the transaction is cancelled (class request
 0x64), the device status polled, and the device reset (0x66) if it stays
 busy. The simulated EOS 70D is reached through this very code with
 `find_cameras(backend=SimUsbBackend(...))`.
@@ -20,21 +21,19 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from mca.devices.ptp.codec import (
-    HEADER_BYTES,
-    MAX_DATASET_BYTES,
-    Container,
-    ContainerHeader,
-    ProtocolError,
-    is_older_transaction,
-    pack_command,
-    pack_data,
-    parse_container,
-    parse_header,
-)
-from mca.devices.ptp.codes import CANON_VENDOR_ID, ContainerType, Op, Resp
+from mca.devices.ptp.codec import Container, ProtocolError
+from mca.devices.ptp.codes import CANON_VENDOR_ID, ContainerType, Resp
+from mca.devices.ptp.engine import EventReader, EventReceived, Initiator
+from mca.devices.ptp.framing import UsbFraming
 from mca.devices.ptp.policy import DEFAULT_POLICY, PtpPolicy
-from mca.devices.ptp.transport import DeviceDisconnected, Response, Transport, TransportError, TransportTimeout
+from mca.devices.ptp.transport import (
+    DeviceDisconnected,
+    Response,
+    Transport,
+    TransportError,
+    TransportTimeout,
+    run_to_response,
+)
 
 PTP_CLASS = (6, 1, 1)
 REQ_CANCEL = 0x64
@@ -142,10 +141,6 @@ def _is_stall(exc: Exception) -> bool:
     return getattr(exc, "errno", None) == errno.EPIPE or getattr(exc, "backend_error_code", None) == LIBUSB_ERROR_PIPE
 
 
-#: Late replies kept for `on_stale_data` up to this size (a GetEvent list); larger ones are only drained.
-MAX_STALE_KEEP_BYTES = 4 * 1024 * 1024
-
-
 class UsbTransport(Transport):
     """Bulk-out commands and data, bulk-in data and responses, interrupt-in events."""
 
@@ -166,9 +161,8 @@ class UsbTransport(Transport):
         self._closed = False
         self._rx = array.array("B", bytes(READ_CHUNK_BYTES))
         self._rx_view = memoryview(self._rx)
-        # Bytes read beyond the container in hand: a view into the read buffer, always consumed (copied by its
-        # reader) before the next device read reuses that buffer.
-        self._pending: memoryview | bytes = b""
+        # The transaction state machine and the containers' framing live in the engine; this shell moves bytes.
+        self.engine = Initiator(UsbFraming(), name=self.name, stale_replies_max=policy.stale_replies_max)
         try:
             try:
                 if self.dev.is_kernel_driver_active(info.interface_number):
@@ -224,7 +218,7 @@ class UsbTransport(Transport):
             return DeviceDisconnected(f"{self.name} disconnected during {what}; reconnect the cable and retry")
         return TransportError(f"USB error on {self.name} during {what}: {exc}")
 
-    def _write(self, data: bytes, timeout_s: float | None) -> None:
+    def _write(self, data: bytes | bytearray | memoryview, timeout_s: float | None) -> None:
         stalls = 0
         while True:
             try:
@@ -249,14 +243,11 @@ class UsbTransport(Transport):
             raise self._wrap(exc, "clearing a stalled endpoint") from exc
 
     def _read_chunk(self, timeout_s: float | None, *, at_boundary: bool = False) -> memoryview:
-        """The next non-empty piece of the bulk-in stream (leftovers first).
+        """The next non-empty piece of the bulk-in stream (the engine copies what it keeps before the next read).
 
         `at_boundary`: nothing of the current container has been read yet, so a stalled endpoint may be
         cleared and the read retried (libgphoto2 retries once, only then).
         """
-        if len(self._pending):
-            chunk, self._pending = memoryview(self._pending), b""
-            return chunk
         deadline = time.monotonic() + (self.timeout_s if timeout_s is None else timeout_s)
         zlps = stalls = 0
         while True:
@@ -276,37 +267,6 @@ class UsbTransport(Transport):
             if zlps > MAX_STRAY_ZLPS or time.monotonic() > deadline:
                 raise TransportTimeout(f"{self.name} sent only zero-length packets")
 
-    def _read_exact(self, n: int, timeout_s: float | None, *, at_boundary: bool = False) -> bytes:
-        out = bytearray()
-        while len(out) < n:
-            chunk = self._read_chunk(timeout_s, at_boundary=at_boundary and not out)
-            take = n - len(out)
-            out += chunk[:take]
-            if len(chunk) > take:
-                self._pending = chunk[take:]
-        return bytes(out)
-
-    def _read_container_header(self, timeout_s: float | None) -> tuple[ContainerHeader, bytes]:
-        head = self._read_exact(HEADER_BYTES, timeout_s, at_boundary=True)
-        return parse_header(head), head
-
-    def _discard_stale(self, header: ContainerHeader, timeout_s: float | None) -> None:
-        """Read past a reply to an earlier transaction; hand a data phase of a sane size to `on_stale_data`."""
-        self.counters.stale_replies_discarded += 1
-        remaining = header.payload_bytes
-        keep = header.type == ContainerType.DATA and remaining <= MAX_STALE_KEEP_BYTES
-        kept = bytearray()
-        while remaining:
-            chunk = self._read_chunk(timeout_s)
-            take = min(remaining, len(chunk))
-            if keep:
-                kept += chunk[:take]
-            remaining -= take
-            if len(chunk) > take:
-                self._pending = chunk[take:]
-        if keep and self.on_stale_data is not None and len(kept) <= MAX_DATASET_BYTES:
-            self.on_stale_data(header.code, header.transaction_id, bytes(kept))
-
     # -- transactions ----------------------------------------------------
     def transaction(
         self,
@@ -321,55 +281,14 @@ class UsbTransport(Transport):
     ) -> Response:
         if self._closed:
             raise TransportError(f"{self.name} is closed")
-        self._write(pack_command(code, transaction_id, params), timeout_s)
-        if data_out is not None:
-            self._write(pack_data(code, transaction_id, data_out), timeout_s)
-        data: bytearray | None = None
-        data_bytes = 0
-        stale = 0
-        while True:
-            header, head = self._read_container_header(timeout_s)
-            if header.transaction_id != transaction_id:
-                late = is_older_transaction(header.transaction_id, transaction_id) or code == Op.OPEN_SESSION
-                if late and stale < self.policy.stale_replies_max and not data_bytes and data is None:
-                    stale += 1  # a reply the camera sent after we gave its transaction up
-                    self._discard_stale(header, timeout_s)
-                    continue
-                raise ProtocolError(
-                    f"{self.name} answered transaction {header.transaction_id}, expected {transaction_id}"
-                )
-            if header.type == ContainerType.DATA:
-                if data_bytes or data is not None:
-                    raise ProtocolError(f"{self.name} sent two data phases for one transaction")
-                if header.code != code:
-                    raise ProtocolError(f"{self.name} data phase code 0x{header.code:04X} for operation 0x{code:04X}")
-                remaining = header.payload_bytes
-                if remaining > max_data_bytes:
-                    raise ProtocolError(
-                        f"{self.name} announced {remaining} data bytes, more than the {max_data_bytes} expected"
-                    )
-                if sink is None:
-                    data = bytearray(remaining)
-                while remaining:
-                    chunk = self._read_chunk(timeout_s)
-                    take = min(remaining, len(chunk))
-                    piece = chunk[:take]
-                    if sink is None:
-                        data[data_bytes : data_bytes + take] = piece  # type: ignore[index]
-                    else:
-                        sink(piece)
-                    data_bytes += take
-                    remaining -= take
-                    if len(chunk) > take:
-                        self._pending = chunk[take:]
-                continue
-            if header.type != ContainerType.RESPONSE:
-                raise ProtocolError(
-                    f"{self.name} sent a {ContainerType(header.type).name} container where a response was due"
-                )
-            rest = self._read_exact(header.payload_bytes, timeout_s)
-            resp = parse_container(head + rest)
-            return Response(resp.code, resp.params, bytes(data) if data is not None else None, data_bytes)
+        engine = self.engine
+        for write in engine.send_command(
+            code, transaction_id, tuple(params), data_out=data_out, max_data_bytes=max_data_bytes
+        ):
+            self._write(write, timeout_s)
+        return run_to_response(
+            self, engine, lambda: self._read_chunk(timeout_s, at_boundary=engine.framing.at_boundary), sink
+        )
 
     def read_event(self, timeout_s: float) -> Container | None:
         if self.ep_int is None:
@@ -383,10 +302,12 @@ class UsbTransport(Transport):
             raise self._wrap(exc, "an event read") from exc
         if not raw:
             return None
-        event = parse_container(bytes(raw))
-        if event.type != ContainerType.EVENT:
-            raise ProtocolError(f"{self.name} sent a non-event container on the interrupt endpoint")
-        return event
+        events = EventReader(UsbFraming(), self.name)  # one interrupt transfer holds one event container
+        events.receive_data(bytes(raw))
+        event = events.next_event()
+        if not isinstance(event, EventReceived):
+            raise ProtocolError(f"{self.name} sent a part of a container on the interrupt endpoint")
+        return Container(ContainerType.EVENT, event.code, event.transaction_id, event.params)
 
     # -- class requests --------------------------------------------------
     def cancel(self, transaction_id: int) -> None:
@@ -426,7 +347,7 @@ class UsbTransport(Transport):
         (Get Device Status), reset it if it stays busy, clear stalls and drop what is buffered."""
         if self._closed:
             return
-        self._pending = b""
+        self.engine.reset()
         if transaction_id is not None:
             try:
                 self.cancel(transaction_id)

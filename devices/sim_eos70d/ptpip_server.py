@@ -2,7 +2,9 @@
 
 One initiator holds the camera at a time, as on a real body: the command
 connection is greeted with InitCommandAck, the event connection with
-InitEventAck, then operations run through `SimEos70D.handle`. A second
+InitEventAck, then operations run through `SimEos70D.handle`, framed and
+checked by the same transaction engine as the host's (`devices.ptp.engine`,
+the responder side). A second
 initiator gets InitFail (busy) and cannot end the first one's session; only
 the session owner's disconnect ends it. Connections are capped
 (`max_connections`), a connection that does not complete its handshake in
@@ -18,32 +20,31 @@ import threading
 import time
 import uuid
 
-from mca.devices.ptp.codec import ProtocolError
-from mca.devices.ptp.transport import TransportError
-from mca.devices.ptp.transport_ptpip import (
-    DATA,
-    END_DATA,
+from mca.devices.ptp.codec import Container, ProtocolError
+from mca.devices.ptp.codes import ContainerType
+from mca.devices.ptp.engine import (
+    NEED_DATA,
+    CommandReceived,
+    DataFinished,
+    DataReceived,
+    EventReader,
+    PingReceived,
+    Responder,
+)
+from mca.devices.ptp.framing import PtpIpFraming
+from mca.devices.ptp.ptpip_packets import (
     INIT_COMMAND_REQUEST,
     INIT_EVENT_ACK,
     INIT_EVENT_REQUEST,
     INIT_FAIL,
     MAX_CONTROL_PACKET_BYTES,
-    OPERATION_REQUEST,
-    PING,
-    PONG,
-    START_DATA,
-    _Conn,
-    pack_data_packet,
     pack_event_packet,
     pack_init_command_ack,
-    pack_operation_response,
     pack_packet,
-    pack_start_data,
     parse_init_command_request,
-    parse_operation_request,
-    parse_packet_header,
-    parse_start_data,
 )
+from mca.devices.ptp.transport import TransportError, TransportTimeout
+from mca.devices.ptp.transport_ptpip import _Conn
 from mca.devices.sim_eos70d.faults import DOWNLOAD_OPS, FaultPlan
 from mca.devices.sim_eos70d.responder import SimEos70D
 
@@ -53,6 +54,8 @@ MAX_DATA_OUT_BYTES = 16 * 1024 * 1024
 MAX_CONNECTIONS = 8
 #: A connection must complete its init handshake within this time.
 HANDSHAKE_TIMEOUT_S = 10.0
+#: A packet begun must be complete within this time.
+PACKET_TIMEOUT_S = 10.0
 #: InitFail reasons (PTP/IP): 1 rejected, 2 busy, 3 unspecified.
 FAIL_REJECTED, FAIL_BUSY = 1, 2
 
@@ -238,20 +241,21 @@ class PtpIpServer:
                 conn.send(pack_event_packet(ev.code, ev.transaction_id, ev.params))
 
         self.camera.std_event_listeners.append(listener)
+        reader = EventReader(PtpIpFraming(), "PTP/IP initiator")
         try:
             while not self._stop.is_set():
                 with self._lock:
                     if conn_id not in self._event_conns:
                         return
-                try:
-                    kind, _ = conn.recv_packet(MAX_CONTROL_PACKET_BYTES)
-                except TransportError as exc:
-                    if "did not answer" in str(exc):
+                event = reader.next_event()
+                if event is NEED_DATA:
+                    try:
+                        reader.receive_data(conn.recv_some())
+                    except TransportTimeout:
                         continue
-                    return
-                if kind == PING:
+                elif isinstance(event, PingReceived):
                     with send_lock:
-                        conn.send(pack_packet(PONG))
+                        conn.send(reader.pong())
         finally:
             try:
                 self.camera.std_event_listeners.remove(listener)
@@ -261,48 +265,54 @@ class PtpIpServer:
     def _command_loop(self, conn: _Conn, conn_id: int) -> None:
         self.sessions_served += 1
         conn.sock.settimeout(0.5)
+        engine = Responder(
+            PtpIpFraming(),
+            name="PTP/IP initiator",
+            expects_data_out=self.camera.expects_data_out,
+            max_data_out_bytes=MAX_DATA_OUT_BYTES,
+        )
+        command: CommandReceived | None = None
+        data_out = bytearray()
+        waited_s = 0.0
         while not self._stop.is_set():
-            try:
-                header = conn.recv_exact(8)
-            except TransportError as exc:
-                if "did not answer" in str(exc):
+            event = engine.next_event()
+            if event is NEED_DATA:
+                try:
+                    engine.receive_data(conn.recv_some())
+                    waited_s = 0.0
+                except TransportTimeout:
+                    waited_s += 0.5
+                    if not engine.in_step and waited_s >= PACKET_TIMEOUT_S:
+                        return  # a packet cut mid-way: the initiator is gone
                     continue
+            elif isinstance(event, PingReceived):
+                conn.send(engine.pong())
+            elif isinstance(event, CommandReceived):
+                command, data_out = event, bytearray()
+                if not event.data_out and not self._respond_in_time(conn, engine, event, None):
+                    return
+            elif isinstance(event, DataReceived):
+                data_out += event.data
+            elif (
+                isinstance(event, DataFinished)
+                and command is not None
+                and not self._respond_in_time(conn, engine, command, bytes(data_out))
+            ):
                 return
-            conn.sock.settimeout(10.0)
-            body_len, kind = parse_packet_header(header, MAX_CONTROL_PACKET_BYTES)
-            body = conn.recv_exact(body_len)
-            if kind == PING:
-                conn.send(pack_packet(PONG))
-                continue
-            if kind != OPERATION_REQUEST:
-                raise ProtocolError(f"expected OperationRequest, got packet type {kind}")
-            _, cmd = parse_operation_request(body)
-            data_out = self._receive_data_out(conn) if self.camera.expects_data_out(cmd.code) else None
-            if not self._respond(conn, cmd, data_out):
-                return
+
+    def _respond_in_time(
+        self, conn: _Conn, engine: Responder, command: CommandReceived, data_out: bytes | None
+    ) -> bool:
+        conn.sock.settimeout(PACKET_TIMEOUT_S)  # a reply's packets may take a while to go out
+        try:
+            return self._respond(conn, engine, command, data_out)
+        finally:
+            engine.drop_reply()  # a reply not sent by now never comes
             conn.sock.settimeout(0.5)
 
-    def _receive_data_out(self, conn: _Conn) -> bytes:
-        kind, body = conn.recv_packet(MAX_CONTROL_PACKET_BYTES)
-        if kind != START_DATA:
-            raise ProtocolError(f"expected StartData, got packet type {kind}")
-        _, total = parse_start_data(body)
-        if total > MAX_DATA_OUT_BYTES:
-            raise ProtocolError(f"data-out of {total} bytes is larger than the camera accepts")
-        out = bytearray()
-        while True:
-            # the packet may not claim more than what is left of the announced total (plus its transaction id)
-            kind, body = conn.recv_packet(4 + total - len(out))
-            if kind not in (DATA, END_DATA):
-                raise ProtocolError(f"expected Data/EndData, got packet type {kind}")
-            out += body[4:]
-            if len(out) > total:
-                raise ProtocolError("initiator sent more data than it announced")
-            if kind == END_DATA:
-                return bytes(out)
-
-    def _respond(self, conn: _Conn, cmd, data_out) -> bool:
+    def _respond(self, conn: _Conn, engine: Responder, command: CommandReceived, data_out: bytes | None) -> bool:
         f = self.faults
+        cmd = Container(ContainerType.COMMAND, command.code, command.transaction_id, command.params)
         if f.stall_op is not None and cmd.code == f.stall_op:
             f.stall_op = None
             self._stop.wait(30.0)  # the initiator times out and hangs up
@@ -325,20 +335,16 @@ class PtpIpServer:
             cut_after, f.disconnect_after_in_bytes = f.disconnect_after_in_bytes, None
         if reply.data is not None:
             data = memoryview(reply.data).cast("B")
-            conn.send(pack_start_data(cmd.transaction_id, len(data)))
+            conn.send(engine.send_data_start(len(data)))
             if len(data) == 0:
-                conn.send(pack_data_packet(cmd.transaction_id, b"", end=True))
+                conn.send(engine.send_data_piece(b"", last=True))
             for start in range(0, len(data), DATA_CHUNK_BYTES):
                 piece = data[start : start + DATA_CHUNK_BYTES]
                 if cut_after is not None and start + len(piece) > cut_after:
-                    conn.send(
-                        pack_data_packet(cmd.transaction_id, piece[: max(0, cut_after - start)], end=False)[
-                            : max(0, 12 + cut_after - start)
-                        ]
-                    )
+                    conn.send(engine.send_data_piece(piece[: max(0, cut_after - start)], last=False))
                     return False
-                conn.send(pack_data_packet(cmd.transaction_id, piece, end=start + DATA_CHUNK_BYTES >= len(data)))
-        resp = pack_operation_response(reply.response.code, reply.response.transaction_id, reply.response.params)
+                conn.send(engine.send_data_piece(piece, last=start + DATA_CHUNK_BYTES >= len(data)))
+        resp = engine.send_response(reply.response.code, reply.response.params)
         if f.corrupt_op is not None and cmd.code == f.corrupt_op:
             f.corrupt_op = None
             resp = b"\x03\x00\x00\x00" + resp[4:]

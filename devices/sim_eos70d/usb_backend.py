@@ -1,8 +1,9 @@
 """A pure-Python pyusb backend that is a simulated EOS 70D: `usb.core.find(backend=SimUsbBackend())` finds it.
 
-It implements the Still Image Capture class on the device side: it parses the
-bulk-out stream into containers, runs them through `SimEos70D.handle`, and
-serves the data and response containers as bulk-in transfers (ending each
+It implements the Still Image Capture class on the device side: the bulk-out
+stream goes through the responder side of the host's own transaction engine
+(`devices.ptp.engine`), each command runs through `SimEos70D.handle`, and the
+engine's data and response containers are served as bulk-in transfers (ending each
 with a zero-length packet when it fills whole packets). A reply may be ready
 only after a delay (a half press while focusing, a late answer after the host
 gave up); a halted endpoint answers reads with EPIPE until cleared; the
@@ -25,16 +26,11 @@ from typing import Any
 import usb.backend
 import usb.core
 
-from mca.devices.ptp.codec import (
-    HEADER_BYTES,
-    ProtocolError,
-    pack_data_header,
-    pack_response,
-    parse_container,
-    parse_header,
-)
+from mca.devices.ptp.codec import Container, ProtocolError
 from mca.devices.ptp.codes import CANON_VENDOR_ID, EOS_70D_PRODUCT_ID, ContainerType, Op, Resp
+from mca.devices.ptp.engine import NEED_DATA, CommandReceived, DataFinished, DataReceived, Responder
 from mca.devices.ptp.events import EosObjectAdded, EosRequestObjectTransfer, parse_eos_events
+from mca.devices.ptp.framing import UsbFraming
 from mca.devices.sim_eos70d.faults import DOWNLOAD_OPS, FaultPlan, corrupt_container
 from mca.devices.sim_eos70d.responder import SimEos70D
 
@@ -91,8 +87,9 @@ class SimUsbBackend(usb.backend.IBackend):
         self.pace_bytes_per_s = pace_bytes_per_s
         self.device_id: _DeviceId | None = _DeviceId(bus, address)
         self.configuration = 0
-        self._out = bytearray()
-        self._pending_cmd: Any = None
+        self._engine = Responder(UsbFraming(), name="host", expects_data_out=self.camera.expects_data_out)
+        self._command: CommandReceived | None = None
+        self._data_out = bytearray()
         self._in: deque[_Transfer] = deque()
         self._lock = threading.RLock()
         self._stalled = False
@@ -117,8 +114,7 @@ class SimUsbBackend(usb.backend.IBackend):
                 self._last_id = self.device_id
             self.device_id = None
             self._in.clear()
-            self._out.clear()
-            self._pending_cmd = None
+            self._engine.reset()
             self.camera.disconnect()
 
     def replug(self) -> None:
@@ -253,7 +249,7 @@ class SimUsbBackend(usb.backend.IBackend):
         self._gone(dev_handle)
         with self._lock:
             self._in.clear()
-            self._out.clear()
+            self._engine.reset()
             self.camera.disconnect()
 
     # -- transfers -------------------------------------------------------
@@ -261,31 +257,30 @@ class SimUsbBackend(usb.backend.IBackend):
         with self._lock:
             self._gone(dev_handle)
             raw = bytes(data)
-            self._out += raw
-            self._process_out()
+            try:
+                self._engine.receive_data(raw)
+                self._process_out()
+            except ProtocolError:
+                self._engine.reset()  # a device would stall; the host recovers with a reset
+                self._stalled = True
             return len(raw)
 
     def _process_out(self) -> None:
-        while len(self._out) >= HEADER_BYTES:
-            try:
-                header = parse_header(self._out)
-            except ProtocolError:
-                self._out.clear()  # a device would stall; the host recovers with a reset
-                self._stalled = True
-                return
-            if len(self._out) < header.length:
-                return
-            raw = bytes(self._out[: header.length])
-            del self._out[: header.length]
-            container = parse_container(raw)
-            if container.type == ContainerType.COMMAND:
-                if self.camera.expects_data_out(container.code):
-                    self._pending_cmd = container
-                    continue
-                self._run(container, None)
-            elif container.type == ContainerType.DATA and self._pending_cmd is not None:
-                cmd, self._pending_cmd = self._pending_cmd, None
-                self._run(cmd, container.payload)
+        while (event := self._engine.next_event()) is not NEED_DATA:
+            if isinstance(event, CommandReceived):
+                self._command, self._data_out = event, bytearray()
+                if not event.data_out:
+                    self._answer(event, None)
+            elif isinstance(event, DataReceived):
+                self._data_out += event.data
+            elif isinstance(event, DataFinished) and self._command is not None:
+                self._answer(self._command, bytes(self._data_out))
+
+    def _answer(self, command: CommandReceived, data_out: bytes | None) -> None:
+        try:
+            self._run(Container(ContainerType.COMMAND, command.code, command.transaction_id, command.params), data_out)
+        finally:
+            self._engine.drop_reply()  # a reply not sent by now never comes (a stall, a dropped or lost reply)
 
     def _run(self, cmd, data_out) -> None:
         f = self.faults
@@ -320,7 +315,9 @@ class SimUsbBackend(usb.backend.IBackend):
             self._halted = True
         ready_at = max(time.monotonic() + delay, self._in[-1].ready_at if self._in else 0.0)
         tid = cmd.transaction_id
-        resp_raw = pack_response(reply.response.code, reply.response.transaction_id, reply.response.params)
+        data = memoryview(reply.data).cast("B") if reply.data is not None else None
+        segments = [] if data is None else [memoryview(w) for w in self._engine.send_data(data)]
+        resp_raw = self._engine.send_response(reply.response.code, reply.response.params)
         if f.corrupt_op is not None and cmd.code == f.corrupt_op:
             f.corrupt_op = None
             resp_raw = corrupt_container(resp_raw)
@@ -330,13 +327,11 @@ class SimUsbBackend(usb.backend.IBackend):
         if f.interrupt_after_in_bytes is not None and cmd.code in DOWNLOAD_OPS:
             self._interrupt_at = self.in_bytes_total + f.interrupt_after_in_bytes
             f.interrupt_after_in_bytes = None
-        if reply.data is not None:
-            data = memoryview(reply.data).cast("B")
-            head = memoryview(pack_data_header(cmd.code, cmd.transaction_id, len(data)))
+        if segments:
             if f.coalesce_response:
-                self._push([head, data, memoryview(resp_raw)], ready_at, tid, keep)
+                self._push([*segments, memoryview(resp_raw)], ready_at, tid, keep)
                 return
-            self._push([head, data], ready_at, tid, keep)
+            self._push(segments, ready_at, tid, keep)
         self._push([memoryview(resp_raw)], ready_at, tid, keep)
 
     def _push(self, segments: list[memoryview], ready_at: float = 0.0, tid: int = 0, keep: bool = False) -> None:
@@ -439,14 +434,13 @@ class SimUsbBackend(usb.backend.IBackend):
                 kept = [t for t in self._in if t.keep_on_cancel]
                 self._in.clear()
                 self._in.extend(kept)
-                self._pending_cmd = None
+                self._engine.abandon()
                 self._stalled = False
                 return len(out)
             if bmRequestType == 0x21 and bRequest == 0x66:  # device reset
                 self.resets_received += 1
                 self._in.clear()
-                self._out.clear()
-                self._pending_cmd = None
+                self._engine.reset()
                 self._stalled = False
                 self._halted = False
                 return 0
