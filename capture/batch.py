@@ -907,3 +907,137 @@ __all__ = [
     "print_summary",
     "run_batch",
 ]
+
+
+# --- the application side of `mca process` --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ProcessSettings:
+    """`mca process`'s options checked and completed from the config file: what `run_batch` is then given."""
+
+    profile: CameraProfile
+    out: Path
+    workers: int
+    max_megapixels: float
+    quality: str
+
+
+def process_settings(
+    inputs: list[Path],
+    *,
+    out: Path | None = None,
+    profile: str | None = None,
+    workers: int | None = None,
+    max_megapixels: float | None = None,
+    quality: str = "full",
+    record: Path | None = None,
+    serve: bool = False,
+    cluster: str | None = None,
+) -> ProcessSettings:
+    """Fill the options left out from the config file and check them all before anything is processed.
+
+    Raises `BatchError` naming the option, file or folder at fault (a bad config file, an unknown profile,
+    a missing input, an `--out` that is a file, a `--record` that is not .rrd, `--serve` with workers)."""
+    from mca.capture.api import check_quality
+    from mca.capture.config import ConfigError, fill_from_config
+    from mca.capture.profiles import resolve_profile
+    from mca.capture.raw import default_max_megapixels, parse_megapixels
+    from mca.processing.camera import ProfileError
+
+    try:
+        chosen = fill_from_config(profile=profile, workers=workers, output_dir=out)
+        camera_profile = resolve_profile(str(chosen["profile"]))
+        limit = (
+            default_max_megapixels() if max_megapixels is None else parse_megapixels(max_megapixels, "--max-megapixels")
+        )
+    except (ConfigError, ProfileError, ValueError) as exc:
+        raise BatchError(str(exc)) from None
+    try:
+        check_quality(quality)
+    except ValueError as exc:
+        raise BatchError(f"--quality: {exc}") from None
+    out_dir, worker_count = Path(chosen["output_dir"]), int(chosen["workers"])
+    missing = [str(p) for p in inputs if not p.exists() and not p.is_symlink()]
+    if missing:
+        raise BatchError(f"no such file or folder: {', '.join(missing)}; check the path")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise BatchError(f"--out {out_dir} is a file; give a folder for the outputs")
+    if record is not None and record.suffix != ".rrd":
+        raise BatchError(f"--record {record}: give a .rrd file name")
+    if serve and (worker_count > 1 or cluster):
+        raise BatchError(
+            "--serve streams from this process, one file at a time: drop --workers/--cluster, "
+            "or use --record and open the file with `mca view` afterwards"
+        )
+    return ProcessSettings(camera_profile, out_dir, worker_count, limit, quality)
+
+
+def choose_progress(quiet: bool, write: Callable[[str], None]) -> Progress:
+    """Progress for `mca process`: none when `quiet`, a rich display on a terminal, else one line per file."""
+    if quiet:
+        return SilentProgress()
+    if sys.stdout.isatty():
+        return RichProgress()
+    return LineProgress(write)
+
+
+def report_document(report: BatchReport) -> dict[str, Any]:
+    """`mca process --json`: every file's outcome, in input order, the totals and the merged recording."""
+    from mca.capture.outputs import json_safe
+
+    files = [
+        {
+            "input": str(o.input_path),
+            "status": o.status,
+            "output_dir": str(o.output_dir),
+            "result": str(o.output_dir / "result.json") if o.status != "failed" else None,
+            "seconds": round(o.seconds, 3),
+            "regions": o.regions,
+            "reason": o.reason,
+        }
+        for o in sorted(report.outcomes, key=lambda o: str(o.input_path))
+    ]
+    totals = {status: report.count(status) for status in ("done", "skipped", "failed")}
+    return json_safe(
+        {
+            "files": files,
+            "totals": totals,
+            "recording": report.recording,
+            "recording_error": report.recording_error,
+            "interrupted": report.interrupted,
+        }
+    )
+
+
+def stop_on_sigterm() -> None:
+    """Make SIGTERM (systemctl stop, kill) end this process like Ctrl-C does: through its `finally` blocks."""
+    import signal
+
+    def interrupted(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    signal.signal(signal.SIGTERM, interrupted)
+
+
+def open_live_viewer(bind: str) -> Any:
+    """A `RerunRecorder` serving a web viewer on `bind` for `mca process --serve`, with SIGTERM made a Ctrl-C
+    so that a service stop reaches the caller's `finally` (else the viewer server is orphaned).
+
+    Raises `BatchError` when the viewer cannot start."""
+    from mca.capture.recording import RerunRecorder
+
+    stop_on_sigterm()
+    try:
+        return RerunRecorder(None, serve=True, bind=bind)
+    except RuntimeError as exc:
+        raise BatchError(str(exc)) from None
+
+
+def serve_until_interrupted(poll_s: float = 1.0) -> None:
+    """Keep this process (and the viewer it serves) alive until Ctrl-C or SIGTERM."""
+    try:
+        while True:
+            time.sleep(poll_s)
+    except KeyboardInterrupt:
+        pass

@@ -11,12 +11,14 @@ and must exist. Relative paths in a file (`output_dir`, a `profile` path) are
 taken relative to the folder of the file that names them.
 
 The loader is pure apart from reading the files: nothing here opens a camera or
-a serial port, it only checks that the values have a usable shape.
+a serial port, it only checks that the values have a usable shape. `set_config_values`
+(`mca config set`) writes a file, atomically, after checking every value as the loader does.
 """
 
 from __future__ import annotations
 
 import difflib
+import json
 import os
 import re
 import tomllib
@@ -220,9 +222,14 @@ __all__ = [
     "Config",
     "ConfigError",
     "apply_file",
+    "config_document",
+    "config_lines",
     "config_paths",
     "load_config",
     "read_config_file",
+    "set_config_values",
+    "settable_config_path",
+    "toml_value",
     "user_config_path",
     "validate_value",
 ]
@@ -237,3 +244,69 @@ def fill_from_config(**given: Any) -> dict[str, Any]:
         return dict(given)
     config = load_config()
     return {key: getattr(config, key) if value is None else value for key, value in given.items()}
+
+
+def toml_value(value: object) -> str:
+    """`value` as TOML: an integer as it is, anything else as a basic string."""
+    if isinstance(value, int) and not isinstance(value, bool):
+        return str(value)
+    return json.dumps(str(value))  # a JSON string is a valid TOML basic string
+
+
+def config_document(config: Config) -> dict[str, dict[str, Any]]:
+    """`mca config show --json`: every key's effective value and the file it came from (or "default")."""
+    return {
+        "values": {key: (getattr(config, key) if key == "workers" else str(getattr(config, key))) for key in KEYS},
+        "sources": {key: config.source_of(key) for key in KEYS},
+    }
+
+
+def config_lines(config: Config) -> list[str]:
+    """`mca config show`: the effective config as TOML lines, each commented with the file it came from."""
+    rendered = [(f"{key} = {toml_value(getattr(config, key))}", config.source_of(key)) for key in KEYS]
+    width = max(len(text) for text, _ in rendered)
+    return [f"{text:<{width}}  # {source}" for text, source in rendered]
+
+
+def settable_config_path(system: bool = False, env: Mapping[str, str] | None = None) -> Path:
+    """The file `mca config set` writes: the system file if asked, else `$MCA_CONFIG`, else the user file."""
+    env = os.environ if env is None else env
+    if system:
+        return SYSTEM_CONFIG
+    if env.get(ENV_VAR):
+        return Path(env[ENV_VAR]).expanduser()
+    return user_config_path(env)
+
+
+def set_config_values(path: Path, assignments: list[str]) -> dict[str, object]:
+    """Validate every KEY=VALUE, then write them all into the TOML file at `path` (atomically); returns them.
+
+    Values are checked as the loader checks them (a `ConfigError` naming the file and the key, and nothing
+    written); a relative path (output_dir, a profile file) is made absolute from the current folder, since
+    the loader would read it relative to the file's folder.
+    """
+    from mca.capture.outputs import write_bytes_atomic
+
+    changes: dict[str, object] = {}
+    for assignment in assignments:
+        key, sep, text = assignment.partition("=")
+        key, text = key.strip(), text.strip()
+        if not sep or not key:
+            raise ConfigError(path, f"'{assignment}' is not KEY=VALUE (e.g. camera=sim)")
+        value: object = text
+        if key == "workers":
+            try:
+                value = int(text)
+            except ValueError:
+                raise ConfigError(path, f"must be a whole number, got {text!r}", key) from None
+        elif key == "output_dir" or (key == "profile" and ("/" in text or text.lower().endswith(".toml"))):
+            value = str(Path(text).expanduser().resolve())
+        validate_value(path, key, value)  # raises naming the file and the key
+        changes[key] = value
+    data = dict(read_config_file(path)) if path.exists() else {}
+    data.update(changes)
+    text = "# mca appliance configuration (mca config set; see deploy/config.example.toml)\n"
+    text += "".join(f"{key} = {toml_value(value)}\n" for key, value in data.items())
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_bytes_atomic(path, text.encode("utf-8"))
+    return changes

@@ -55,7 +55,7 @@ def reporting_pipeline(seen: dict, out_root: Path):
 
 @pytest.mark.parametrize("profile_name", ["paper-70d", "none"])
 def test_depth_maps_are_written_while_the_pipeline_runs_and_match_the_files_written_after(tmp_path, profile_name):
-    from mca.capture.commands.process import resolve_profile
+    from mca.capture.profiles import resolve_profile
 
     chosen = resolve_profile(profile_name)
     source = make_png(tmp_path / "a.png")

@@ -8,7 +8,7 @@ from pathlib import Path
 from typer.testing import CliRunner
 
 from mca.capture.cli import app
-from mca.capture.commands.review import format_table, review_rows
+from mca.capture.review import format_table, review_rows
 
 
 def _result(
@@ -88,7 +88,7 @@ def test_cli_prints_the_table_and_json(tmp_path: Path) -> None:
 
 
 def test_view_without_display_says_how_to_look(tmp_path: Path, monkeypatch) -> None:
-    from mca.capture.commands.view import has_display, viewer_command
+    from mca.capture.viewer import has_display, viewer_command
 
     recording = tmp_path / "c.rrd"
     recording.write_bytes(b"rrd")

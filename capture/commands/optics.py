@@ -24,44 +24,15 @@ def register(app: typer.Typer) -> None:
 
         Signs: positive means farther than the focus plane.
         """
-        from mca.capture.profiles import load_profile
-        from mca.processing.camera import ProfileError
-        from mca.processing.optics import MCAOptics
+        from mca.capture.profiles import convert_optics
 
-        given = [v is not None for v in (disparity_px, inter_image_depth_mm, distance_mm)]
-        if sum(given) != 1:
-            typer.echo("error: give exactly one of --disparity-px, --inter-image-depth-mm, --distance-mm", err=True)
-            raise typer.Exit(2)
         try:
-            optics_model = MCAOptics.from_profile(load_profile(profile))
-        except (ProfileError, ValueError) as exc:
+            values = convert_optics(
+                profile, disparity_px=disparity_px, inter_image_depth_mm=inter_image_depth_mm, distance_mm=distance_mm
+            )
+        except ValueError as exc:  # a ProfileError is a ValueError too
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(2) from None
-        if disparity_px is not None:
-            estimate = optics_model.from_disparity(disparity_px)
-        elif inter_image_depth_mm is not None:
-            if inter_image_depth_mm >= optics_model.sensor_distance_mm:
-                typer.echo(
-                    "error: --inter-image-depth-mm must be smaller than the sensor distance "
-                    f"{optics_model.sensor_distance_mm:.3f} mm",
-                    err=True,
-                )
-                raise typer.Exit(2)
-            estimate = optics_model.from_inter_image_depth(inter_image_depth_mm)
-        else:
-            assert distance_mm is not None
-            if distance_mm <= optics_model.focal_length_mm:
-                typer.echo(
-                    f"error: --distance-mm must exceed the focal length {optics_model.focal_length_mm} mm", err=True
-                )
-                raise typer.Exit(2)
-            estimate = optics_model.from_distance(distance_mm)
-        values = {
-            "disparity_px": round(estimate.disparity_px, 6),
-            "inter_image_depth_mm": round(estimate.inter_image_depth_mm, 6),
-            "inter_object_depth_mm": round(estimate.inter_object_depth_mm, 4),
-            "distance_mm": round(estimate.distance_mm, 4),
-        }
         if as_json:
             typer.echo(json.dumps(values))
             return

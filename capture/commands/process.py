@@ -8,57 +8,6 @@ from pathlib import Path
 import typer
 
 
-def resolve_profile(name: str | None):
-    """The profile for `--profile`: a built-in name or TOML path; `none` is the default filter geometry without lens
-    data (results in disparity pixels only)."""
-    import dataclasses
-
-    from mca.capture.profiles import DEFAULT_PROFILE, load_profile
-
-    if name is not None and name.lower() == "none":
-        base = load_profile(DEFAULT_PROFILE)
-        return dataclasses.replace(base, name="none", lens=None, source=f"{base.source} (filter geometry only)")
-    return load_profile(name or DEFAULT_PROFILE)
-
-
-def report_document(report) -> dict:
-    """`mca process --json`: every file's outcome, in input order, the totals and the merged recording."""
-    from mca.capture.outputs import json_safe
-
-    files = [
-        {
-            "input": str(o.input_path),
-            "status": o.status,
-            "output_dir": str(o.output_dir),
-            "result": str(o.output_dir / "result.json") if o.status != "failed" else None,
-            "seconds": round(o.seconds, 3),
-            "regions": o.regions,
-            "reason": o.reason,
-        }
-        for o in sorted(report.outcomes, key=lambda o: str(o.input_path))
-    ]
-    totals = {status: report.count(status) for status in ("done", "skipped", "failed")}
-    return json_safe(
-        {
-            "files": files,
-            "totals": totals,
-            "recording": report.recording,
-            "recording_error": report.recording_error,
-            "interrupted": report.interrupted,
-        }
-    )
-
-
-def stop_on_sigterm() -> None:
-    """Make SIGTERM (systemctl stop, kill) end this process like Ctrl-C does: through its `finally` blocks."""
-    import signal
-
-    def interrupted(signum: int, frame: object) -> None:
-        raise KeyboardInterrupt(f"signal {signum}")
-
-    signal.signal(signal.SIGTERM, interrupted)
-
-
 def register(app: typer.Typer) -> None:
     @app.command("process")
     def process(
@@ -137,98 +86,51 @@ def register(app: typer.Typer) -> None:
         """Process photographs into OUT/<stem>/: depth.tiff, regions.png, result.json, all_in_focus.png, layers/,
         scene.ply and scene.glb (docs/outputs.md). Finished folders are skipped unless --force; exits 1 when any
         file failed."""
-        import sys
+        from mca.capture.batch import (
+            BatchError,
+            choose_progress,
+            open_live_viewer,
+            print_summary,
+            process_settings,
+            report_document,
+            run_batch,
+            serve_until_interrupted,
+        )
 
-        from mca.capture.batch import BatchError, LineProgress, RichProgress, SilentProgress, print_summary, run_batch
-        from mca.capture.config import ConfigError, fill_from_config
-        from mca.processing.camera import ProfileError
-
-        try:
-            chosen = fill_from_config(profile=profile, workers=workers, output_dir=out)
-            profile, workers, out = chosen["profile"], chosen["workers"], chosen["output_dir"]
-        except ConfigError as exc:
-            typer.echo(f"error: {exc}", err=True)
-            raise typer.Exit(2) from None
-        try:
-            camera_profile = resolve_profile(str(profile))
-        except ProfileError as exc:
-            typer.echo(f"error: {exc}", err=True)
-            raise typer.Exit(2) from None
-        from mca.capture.raw import default_max_megapixels, parse_megapixels
-
-        try:
-            max_megapixels = (
-                default_max_megapixels()
-                if max_megapixels is None
-                else parse_megapixels(max_megapixels, "--max-megapixels")
-            )
-        except ValueError as exc:
-            typer.echo(f"error: {exc}", err=True)
-            raise typer.Exit(2) from None
-        from mca.capture.api import check_quality
-
-        try:
-            check_quality(quality)
-        except ValueError as exc:
-            typer.echo(f"error: --quality: {exc}", err=True)
-            raise typer.Exit(2) from None
-        missing = [str(p) for p in inputs if not p.exists() and not p.is_symlink()]
-        if missing:
-            typer.echo(f"error: no such file or folder: {', '.join(missing)}; check the path", err=True)
-            raise typer.Exit(2)
-        if out.exists() and not out.is_dir():
-            typer.echo(f"error: --out {out} is a file; give a folder for the outputs", err=True)
-            raise typer.Exit(2)
-        if record is not None and record.suffix != ".rrd":
-            typer.echo(f"error: --record {record}: give a .rrd file name", err=True)
-            raise typer.Exit(2)
-        progress: SilentProgress | RichProgress | LineProgress
-        if quiet or as_json:
-            progress = SilentProgress()
-        elif sys.stdout.isatty():
-            progress = RichProgress()
-        else:
-            progress = LineProgress(lambda line: typer.echo(line))
         live = None
-        if serve:
-            if workers > 1 or cluster:
-                typer.echo(
-                    "error: --serve streams from this process, one file at a time: drop --workers/--cluster, "
-                    "or use --record and open the file with `mca view` afterwards",
-                    err=True,
-                )
-                raise typer.Exit(2)
-            from mca.capture.recording import RerunRecorder
-
-            stop_on_sigterm()  # a service stop must reach the `finally` below, or the viewer server is orphaned
-            try:
-                live = RerunRecorder(None, serve=True, bind=bind)
-            except RuntimeError as exc:
-                typer.echo(f"error: {exc}", err=True)
-                raise typer.Exit(2) from None
-            typer.echo(f"rerun viewer: {live.viewer_url}", err=True)
         try:
-            try:
-                report = run_batch(
-                    list(inputs),
-                    out,
-                    camera_profile,
-                    workers=workers,
-                    cluster=cluster,
-                    force=force,
-                    record=record,
-                    watch=watch,
-                    watch_timeout_s=watch_timeout,
-                    poll_interval_s=poll_interval,
-                    settle_s=settle,
-                    progress=progress,
-                    recorder=live,
-                    max_megapixels=max_megapixels,
-                    quality=quality,
-                )
-            except BatchError as exc:
-                typer.echo(f"error: {exc}", err=True)
-                raise typer.Exit(2) from None
+            settings = process_settings(
+                list(inputs),
+                out=out,
+                profile=profile,
+                workers=workers,
+                max_megapixels=max_megapixels,
+                quality=quality,
+                record=record,
+                serve=serve,
+                cluster=cluster,
+            )
+            progress = choose_progress(quiet or as_json, lambda line: typer.echo(line))
+            if serve:
+                live = open_live_viewer(bind)
+                typer.echo(f"rerun viewer: {live.viewer_url}", err=True)
+            report = run_batch(
+                list(inputs),
+                settings.out,
+                settings.profile,
+                workers=settings.workers,
+                cluster=cluster,
+                force=force,
+                record=record,
+                watch=watch,
+                watch_timeout_s=watch_timeout,
+                poll_interval_s=poll_interval,
+                settle_s=settle,
+                progress=progress,
+                recorder=live,
+                max_megapixels=settings.max_megapixels,
+                quality=settings.quality,
+            )
             if as_json:
                 typer.echo(json.dumps(report_document(report), indent=2))
             else:
@@ -236,14 +138,11 @@ def register(app: typer.Typer) -> None:
             if report.recording_error:
                 typer.echo(f"error: {report.recording_error}", err=True)
             if live is not None and not report.interrupted:
-                import time
-
                 typer.echo(f"still serving the viewer at {live.viewer_url}; Ctrl-C to stop", err=True)
-                try:
-                    while True:
-                        time.sleep(1.0)
-                except KeyboardInterrupt:
-                    pass
+                serve_until_interrupted()
+        except BatchError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(2) from None
         finally:
             if live is not None:
                 live.close()
