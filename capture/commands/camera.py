@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import typer
 
@@ -28,38 +28,22 @@ def _echo_json(document: Any) -> None:
     typer.echo(json.dumps(json_safe(document), indent=2))
 
 
-def _open(spec: str | None, debug_logfile: Path | None = None, ctx: typer.Context | None = None):
+def _fail(exc: Any) -> NoReturn:
+    typer.echo(f"error: {exc}", err=True)
+    raise typer.Exit(getattr(exc, "exit_code", 1)) from exc
+
+
+def _open(spec: str | None, debug_logfile: Path | None = None, ctx: typer.Context | None = None) -> Any:
     """Open the camera `spec` names (None: the config file's `camera`, else auto), logging PTP to a file if asked."""
-    from mca.capture.config import ConfigError, fill_from_config
-    from mca.capture.tether import camera_factory
-    from mca.devices.ptp.camera import PropertyNotReported, PtpError
-    from mca.devices.ptp.codec import ProtocolError
-    from mca.devices.ptp.transport import TransportError
+    from mca.capture.camera_app import CameraSetupError, choose_camera, open_chosen
 
     try:
-        spec = str(fill_from_config(camera=spec)["camera"])
-    except ConfigError as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2) from exc
-    traffic = None
-    if debug_logfile is not None:
-        from mca.devices.ptp.traffic_log import TrafficLogFile
-
-        try:
-            traffic = TrafficLogFile(str(debug_logfile), header=f"mca camera --camera {spec}")
-        except OSError as exc:
-            typer.echo(f"error: --debug-logfile {debug_logfile}: {exc.strerror or exc}", err=True)
-            raise typer.Exit(2) from exc
-        if ctx is not None:
-            ctx.call_on_close(traffic.close)  # when the command ends, however it ends
-    try:
-        return camera_factory(spec, traffic_log=traffic.write if traffic is not None else None)()
-    except ValueError as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2) from exc
-    except (TransportError, ProtocolError, PtpError, PropertyNotReported) as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(1) from exc
+        choice = choose_camera(spec, debug_logfile, "mca camera")
+        if choice.traffic is not None and ctx is not None:
+            ctx.call_on_close(choice.traffic.close)  # when the command ends, however it ends
+        return open_chosen(choice)
+    except CameraSetupError as exc:
+        _fail(exc)
 
 
 @camera_app.command("list")
@@ -67,27 +51,11 @@ def list_cameras(
     sim: bool = typer.Option(False, "--sim", help="also list the simulated EOS 70D"), as_json: bool = JSON_OPTION
 ) -> None:
     """List PTP cameras on USB (Canon first)."""
-    from mca.devices.ptp.transport import TransportError
-    from mca.devices.ptp.transport_usb import find_cameras
+    from mca.capture.camera_app import list_cameras as find
 
-    found: list[Any] = []
-    try:
-        found = list(find_cameras())
-    except TransportError as exc:
-        typer.echo(f"warning: {exc}", err=True)
-    if sim:
-        from mca.capture.tether import make_sim_rig
-
-        found += [
-            dict(port="sim", manufacturer=c.manufacturer, product=c.product, serial_number=c.serial_number)
-            for c in find_cameras(make_sim_rig().backend)
-        ]
-    rows = [
-        c
-        if isinstance(c, dict)
-        else dict(port=c.port, manufacturer=c.manufacturer, product=c.product, serial_number=c.serial_number)
-        for c in found
-    ]
+    rows, warning = find(sim)
+    if warning is not None:
+        typer.echo(f"warning: {warning}", err=True)
     if as_json:
         _echo_json({"cameras": rows})
         return
@@ -106,50 +74,20 @@ def info(
     debug_logfile: Path | None = LOGFILE_OPTION,
 ) -> None:
     """Model, firmware, serial number, storages and capture method."""
-    from mca.devices.ptp.camera import PtpError
-    from mca.devices.ptp.codec import ProtocolError
-    from mca.devices.ptp.transport import TransportError
+    from mca.capture.camera_app import camera_errors, camera_info, info_lines
 
     cam = _open(camera, debug_logfile, ctx)
     try:
-        i = cam.info
-        if as_json:
-            _echo_json(
-                {
-                    "camera": cam.name,
-                    "manufacturer": i.manufacturer,
-                    "model": i.model,
-                    "firmware": i.device_version,
-                    "serial_number": i.serial_number,
-                    "capture": "Canon EOS remote release" if cam.is_eos else "PTP InitiateCapture",
-                    "storages": [
-                        {
-                            "id": f"0x{sid:08X}",
-                            "description": s.description,
-                            "volume_label": s.volume_label,
-                            "free_bytes": s.free_space_bytes,
-                            "capacity_bytes": s.max_capacity_bytes,
-                        }
-                        for sid, s in cam.storages().items()
-                    ],
-                }
-            )
-            return
-        typer.echo(f"camera:       {cam.name}")
-        typer.echo(f"model:        {i.manufacturer} {i.model}")
-        typer.echo(f"firmware:     {i.device_version}")
-        typer.echo(f"serial:       {i.serial_number}")
-        typer.echo(f"capture:      {'Canon EOS remote release' if cam.is_eos else 'PTP InitiateCapture'}")
-        for sid, s in cam.storages().items():
-            typer.echo(
-                f"storage 0x{sid:08X}: {s.description} {s.volume_label} "
-                f"{s.free_space_bytes / 1e9:.1f} of {s.max_capacity_bytes / 1e9:.1f} GB free"
-            )
-    except (TransportError, ProtocolError, PtpError) as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(1) from exc
+        document = camera_info(cam)
+    except camera_errors() as exc:
+        _fail(exc)
     finally:
         cam.close()
+    if as_json:
+        _echo_json(document)
+        return
+    for line in info_lines(document):
+        typer.echo(line)
 
 
 @camera_app.command("config")
@@ -163,10 +101,13 @@ def config(
     debug_logfile: Path | None = LOGFILE_OPTION,
 ) -> None:
     """Show or change camera properties by human name."""
-    from mca.devices.ptp.camera import PropertyNotReported, PtpError
-    from mca.devices.ptp.codec import ProtocolError
-    from mca.devices.ptp.properties import PROPERTIES, UnknownPropertyName
-    from mca.devices.ptp.transport import TransportError
+    from mca.capture.camera_app import (
+        CameraSetupError,
+        camera_errors,
+        camera_properties,
+        property_lines,
+        set_camera_property,
+    )
 
     if action not in (None, "get", "set") or (action and not name) or (action == "set" and value is None):
         typer.echo("usage: mca camera config [get NAME | set NAME VALUE]", err=True)
@@ -174,39 +115,18 @@ def config(
     cam = _open(camera, debug_logfile, ctx)
     try:
         if action == "set":
-            try:
-                pv = cam.set_property(str(name), str(value))
-            except (UnknownPropertyName, PropertyNotReported, ValueError, PtpError) as exc:
-                typer.echo(f"error: {exc}", err=True)
-                raise typer.Exit(2) from exc
-            if as_json:
-                _echo_json({pv.name: {"value": pv.value, "allowed": list(pv.allowed)}})
-            else:
-                typer.echo(f"{pv.name} = {pv.value}")
-            return
-        names = [name] if name else list(PROPERTIES)
-        listed: dict[str, Any] = {}
-        for n in names:
-            try:
-                pv = cam.get_property(n)
-            except (UnknownPropertyName, PropertyNotReported) as exc:
-                if name:
-                    typer.echo(f"error: {exc}", err=True)
-                    raise typer.Exit(2) from exc
-                continue
-            listed[pv.name] = {"value": pv.value, "allowed": list(pv.allowed)}
-            if as_json:
-                continue
-            typer.echo(f"{pv.name} = {pv.value}")
-            if pv.allowed:
-                typer.echo(f"  allowed: {', '.join(pv.allowed)}")
-        if as_json:
-            _echo_json(listed)
-    except (TransportError, ProtocolError) as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(1) from exc
+            listed = set_camera_property(cam, str(name), str(value))
+        else:
+            listed = camera_properties(cam, name)
+    except (CameraSetupError, *camera_errors()) as exc:
+        _fail(exc)
     finally:
         cam.close()
+    if as_json:
+        _echo_json(listed)
+        return
+    for line in property_lines(listed, with_allowed=action != "set"):
+        typer.echo(line)
 
 
 @camera_app.command("doctor")
@@ -222,19 +142,14 @@ def doctor(
 
     The report is printed and written to a file you can attach to a bug report.
     """
-    from mca.capture.doctor import diagnose, write_report
-    from mca.devices.ptp.camera import PtpError
-    from mca.devices.ptp.codec import ProtocolError
-    from mca.devices.ptp.transport import TransportError
+    from mca.capture.camera_app import CameraSetupError, diagnose_camera
+    from mca.capture.doctor import write_report
 
     cam = _open(camera, ctx=ctx)
     try:
-        usb = getattr(cam.transport, "info", None)
-        ids = (usb.vendor_id, usb.product_id) if usb is not None else None
-        result = diagnose(cam, usb_ids=ids, live_view=live_view)
-    except (TransportError, ProtocolError, PtpError) as exc:
-        typer.echo(f"error: the camera stopped answering during the check: {exc}", err=True)
-        raise typer.Exit(1) from exc
+        result = diagnose_camera(cam, live_view)
+    except CameraSetupError as exc:
+        _fail(exc)
     finally:
         cam.close()
     typer.echo(result.text(), nl=False)
@@ -253,24 +168,13 @@ def serve_sim(
     scenario: str = typer.Option("none", "--scenario", help="a fault scenario of the simulated body"),
 ) -> None:
     """Serve the simulated EOS 70D over PTP/IP (for gphoto2 and other PTP/IP initiators) until Ctrl-C."""
-    from mca.capture.tether import default_sim_frame_source
-    from mca.devices.sim_eos70d.faults import scenario as named_scenario
-    from mca.devices.sim_eos70d.ptpip_server import PtpIpServer, parse_address
-    from mca.devices.sim_eos70d.responder import SimEos70D
+    from mca.capture.camera_app import CameraSetupError, sim_server, sim_server_banner
 
     try:
-        chosen = named_scenario(scenario)
-        host, port = parse_address(ptpip)
-        sim = SimEos70D(default_sim_frame_source(), serial_number=serial, behaviour=chosen.behaviour)
-        server = PtpIpServer(sim, host, port, faults=chosen.faults)
-    except (OSError, ValueError) as exc:
-        typer.echo(f"error: cannot serve the simulated camera on {ptpip}: {exc}", err=True)
-        raise typer.Exit(2) from exc
-    typer.echo(
-        f"simulated Canon EOS 70D on ptpip:{server.address} (gphoto2 --port ptpip:{server.host}"
-        f"{'' if server.port == 15740 else f':{server.port}:{server.port}'}); Ctrl-C to stop",
-        err=True,
-    )
+        server = sim_server(ptpip, serial, scenario)
+    except CameraSetupError as exc:
+        _fail(exc)
+    typer.echo(sim_server_banner(server), err=True)
     try:
         server.serve_forever()
     except KeyboardInterrupt:
