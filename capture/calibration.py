@@ -455,3 +455,239 @@ def calibrated_profile_toml(
         f"residuals_px = {_toml_value([round(float(v), 5) for v in fit.residuals_px])}",
     ]
     return "\n".join(lines) + "\n"
+
+
+# --- the application side of `mca calibrate` -------------------------------------------------------------------------
+
+
+class CalibrationUsageError(ValueError):
+    """Options that cannot make a calibration (bad profile, sweep, deviation, camera/rail pairing)."""
+
+
+@dataclass(frozen=True)
+class CalibrationRequest:
+    """`mca calibrate`'s options, as given (None: the config file's camera, rail and profile)."""
+
+    out: Path  # calibrated profile TOML to write; the plot goes beside it as .png
+    camera: str | None = None
+    rail: str | None = None
+    profile: str | None = None
+    from_mm: float = -100.0
+    to_mm: float = 150.0
+    step_mm: float = 10.0
+    shots_dir: Path | None = None  # default: OUT stem + "-sweep"
+    target_distance_at_zero_mm: float | None = None  # default: the profile's focus distance + from_mm
+    rail_start_mm: float = 0.0
+    disparity_offset_px: float = 0.0
+    feed_mm_per_min: float | None = None
+    sim_deviation: str = "1.03,1.02,0.3"
+    sim_scale: float = 0.25
+
+
+@dataclass
+class CalibrationSetup:
+    """A checked request: the nominal profile and lens, the sweep, where the shots go, the camera and the rail."""
+
+    request: CalibrationRequest
+    camera: str
+    rail: str
+    profile: CameraProfile
+    nominal: LensModel
+    plan: SweepPlan
+    directory: Path
+    camera_factory: Callable[[], Any]
+    bench: SimBench | None = None  # the simulated bench when the camera is `sim`
+
+    def describe(self) -> str:
+        """The sweep in one line: range, positions, the target's distance at rail zero, the shots folder."""
+        r = self.request
+        return (
+            f"sweep {r.from_mm:+.1f} .. {r.to_mm:+.1f} mm step {r.step_mm} mm: {len(self.plan.positions_mm)} "
+            f"positions, target at {self.plan.target_distance_at_zero_mm:.1f} mm from the lens with the rail at 0; "
+            f"shots in {self.directory}"
+        )
+
+
+@dataclass
+class CalibrationRun:
+    """A finished calibration: the fit, the files written, and (simulated bench) the lens it should have found."""
+
+    setup: CalibrationSetup
+    outcome: SweepOutcome
+    fit: CalibrationFit
+    profile_text: str  # the calibrated profile TOML, as written to `out`
+    plot: np.ndarray  # the fit plot (BGR), as written to `plot_path`
+    plot_path: Path
+    model_error_mm: float | None = None  # simulated bench: the fitted profile's worst depth error over the sweep
+
+    PARAMETERS = ("filter_centre_distance_mm", "sensor_distance_mm", "focus_distance_mm", "disparity_offset_px")
+    LABELS = ("d_a (red-blue) mm", "d_ls mm", "focus distance mm", "disparity offset px (fixed)")
+
+    def parameter_rows(self) -> list[tuple[str, float, float, float | None, float | None]]:
+        """(label, nominal, fitted, sigma, simulated truth) per lens parameter; sigma None for a fixed one."""
+        truth = self.setup.bench.truth if self.setup.bench is not None else None
+        rows = []
+        for name, label in zip(self.PARAMETERS, self.LABELS):
+            sigma = self.fit.sigma.get(name) if name != "disparity_offset_px" else None
+            rows.append(
+                (
+                    label,
+                    getattr(self.fit.nominal, name),
+                    getattr(self.fit.fitted, name),
+                    sigma,
+                    getattr(truth, name) if truth is not None else None,
+                )
+            )
+        return rows
+
+    def report_lines(self) -> list[str]:
+        """The printed report: the fit's residuals, the table of parameters, the simulated lens check, the files."""
+        fit, bench = self.fit, self.setup.bench
+        lines = [
+            f"fit over {len(self.outcome.points)} positions ({len(self.outcome.shot_positions_mm)} shot now): "
+            f"residual rms {fit.residual_rms_px:.4f} px, max depth error {fit.max_depth_error_mm:.3f} mm"
+        ]
+        header = f"{'':28s}{'nominal':>12s}{'fitted':>12s}{'sigma':>10s}"
+        lines.append(header + (f"{'sim truth':>12s}{'error':>9s}" if bench else ""))
+        for label, nom, value, sigma, truth in self.parameter_rows():
+            line = f"{label:28s}{nom:12.4f}{value:12.4f}{(f'{sigma:.2g}' if sigma is not None else '-'):>10s}"
+            if truth is not None:
+                error = f"{(value - truth) / truth * 100:+.3f}%" if "px" not in label else f"{value - truth:+.3f}px"
+                line += f"{truth:12.4f}{error:>9s}"
+            lines.append(line)
+        if self.model_error_mm is not None:
+            lines.append(
+                "depth error of the fitted profile against the simulated lens over the sweep: "
+                f"{self.model_error_mm:.3f} mm max"
+            )
+        lines.append(f"wrote {self.setup.request.out} and {self.plot_path}")
+        return lines
+
+    def document(self) -> dict[str, Any]:
+        """`mca calibrate --json`: the files, the counts, the residuals and every parameter."""
+        from mca.capture.outputs import json_safe
+
+        rows = self.parameter_rows()
+        return json_safe(
+            {
+                "profile": str(self.setup.request.out),
+                "plot": str(self.plot_path),
+                "shots_dir": str(self.setup.directory),
+                "positions": len(self.outcome.points),
+                "shot_now": len(self.outcome.shot_positions_mm),
+                "residual_rms_px": self.fit.residual_rms_px,
+                "max_depth_error_mm": self.fit.max_depth_error_mm,
+                "parameters": {
+                    name: {"nominal": row[1], "fitted": row[2], "sigma": row[3], "sim_truth": row[4]}
+                    for name, row in zip(self.PARAMETERS, rows)
+                },
+                "sim_model_error_mm": self.model_error_mm,
+            }
+        )
+
+
+def plan_calibration(request: CalibrationRequest) -> CalibrationSetup:
+    """Fill the camera, rail and profile from the config, check the sweep and choose the camera (the simulated
+    bench for `sim`); a `CalibrationUsageError` names what is wrong before anything moves."""
+    from mca.capture.config import ConfigError, fill_from_config
+    from mca.capture.profiles import load_profile
+    from mca.capture.tether import camera_factory, make_sim_rig
+    from mca.processing.camera import ProfileError
+
+    try:
+        chosen = fill_from_config(camera=request.camera, rail=request.rail, profile=request.profile)
+        camera, rail = str(chosen["camera"]), str(chosen["rail"])
+        profile = load_profile(str(chosen["profile"]))
+        nominal = nominal_lens(profile, request.disparity_offset_px)
+        at_zero = request.target_distance_at_zero_mm
+        at_zero = at_zero if at_zero is not None else nominal.focus_distance_mm + request.from_mm
+        plan = SweepPlan(request.from_mm, request.to_mm, request.step_mm, at_zero, request.rail_start_mm)
+        deviation = SimDeviation.parse(request.sim_deviation)
+    except (ConfigError, ProfileError, ValueError) as exc:
+        raise CalibrationUsageError(str(exc)) from None
+    out = request.out
+    directory = request.shots_dir if request.shots_dir is not None else out.with_name(out.stem + "-sweep")
+    bench = None
+    if camera == "sim":
+        bench = SimBench(profile, plan, deviation, scale=request.sim_scale)
+        factory = camera_factory("sim", rig=make_sim_rig(bench.frame))
+    else:
+        try:
+            factory = camera_factory(camera)
+        except ValueError as exc:
+            raise CalibrationUsageError(str(exc)) from None
+    return CalibrationSetup(request, camera, rail, profile, nominal, plan, directory, factory, bench)
+
+
+def run_calibration(setup: CalibrationSetup, log: Callable[[str], None] = lambda text: None) -> CalibrationRun:
+    """Sweep the rail, fit d_a and d_ls, and write the calibrated profile (checked by the loader) and its plot.
+
+    Raises `CalibrationUsageError` when the simulated camera is paired with a real rail, and
+    `CalibrationError` when the rail, the camera or the fit fails (what was shot is kept; rerun to resume)."""
+    import tomllib
+
+    import cv2
+
+    from mca.devices.rail import RailError, open_rail
+    from mca.processing.calibration import CalibrationFitError, fit_lens, plot_fit
+    from mca.processing.camera import profile_from_mapping
+
+    bench, request = setup.bench, setup.request
+    try:
+        options = {"sim_speedup": 200.0, "poll_interval_s": 0.01} if setup.rail == "sim" else {}
+        with open_rail(setup.rail, **options) as bench_rail:
+            if bench is not None and setup.rail == "sim":
+                bench.rail_runner = bench_rail.simulator  # type: ignore[attr-defined]
+            elif bench is not None:
+                raise CalibrationUsageError("--camera sim photographs the simulated rail only: use --rail sim with it")
+            outcome = run_sweep(
+                setup.plan,
+                setup.profile,
+                setup.directory,
+                camera_factory=setup.camera_factory,
+                rail=bench_rail,
+                log=log,
+                feed_mm_per_min=request.feed_mm_per_min,
+            )
+    except RailError as exc:
+        raise CalibrationError(f"{exc} Nothing was shot at this run's remaining positions; rerun to resume.") from exc
+    points = outcome.points
+    try:
+        fit = fit_lens([p.distance_mm for p in points], [p.disparity_px for p in points], setup.nominal)
+    except CalibrationFitError as exc:
+        raise CalibrationError(f"{exc} ({len(points)} points in {setup.directory})") from exc
+    text = calibrated_profile_toml(setup.profile, fit, setup.plan, shots_dir=str(setup.directory))
+    out = request.out
+    profile_from_mapping(tomllib.loads(text), str(out))  # the loader accepts what we write
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text, encoding="utf-8")
+    plot = plot_fit(fit, truth=bench.truth if bench is not None else None)
+    plot_path = out.with_suffix(".png")
+    cv2.imwrite(str(plot_path), plot)
+    model_error = None
+    if bench is not None:
+        grid = np.linspace(min(p.distance_mm for p in points), max(p.distance_mm for p in points), 101)
+        fitted = np.asarray(fit.fitted.distance_mm(bench.truth.disparity_px(grid)))
+        model_error = float(np.abs(fitted - grid).max())
+    return CalibrationRun(setup, outcome, fit, text, plot, plot_path, model_error)
+
+
+def record_calibration(run: CalibrationRun, record: Path) -> None:
+    """Log the fit (plot, parameters, residuals, the profile text) into the rerun recording `record`."""
+    import cv2
+
+    from mca.capture.recording import RerunRecorder
+
+    f, fit = run.fit.fitted, run.fit
+    with RerunRecorder(record) as recorder:
+        recorder.record(
+            "calibration",
+            plot=cv2.cvtColor(run.plot, cv2.COLOR_BGR2RGB),
+            filter_centre_distance_mm=f.filter_centre_distance_mm,
+            sensor_distance_mm=f.sensor_distance_mm,
+            focus_distance_mm=f.focus_distance_mm,
+            residual_rms_px=fit.residual_rms_px,
+            max_depth_error_mm=fit.max_depth_error_mm,
+            residuals_px=fit.residuals_px,
+            profile=run.profile_text,
+        )

@@ -104,7 +104,16 @@ def list_cameras(sim: bool = False) -> tuple[list[dict[str, Any]], str | None]:
 
 
 def camera_info(cam: Any) -> dict[str, Any]:
-    """`mca camera info`: model, firmware, serial number, capture method and storages of an open camera."""
+    """`mca camera info`: model, firmware, serial number, capture method and storages of an open camera.
+
+    A camera that stops answering raises `CameraSetupError` (exit code 1)."""
+    try:
+        return _camera_info(cam)
+    except camera_errors() as exc:
+        raise CameraSetupError(str(exc), exit_code=1) from exc
+
+
+def _camera_info(cam: Any) -> dict[str, Any]:
     i = cam.info
     return {
         "camera": cam.name,
@@ -158,6 +167,8 @@ def camera_properties(cam: Any, name: str | None = None) -> dict[str, dict[str, 
             if name:
                 raise CameraSetupError(str(exc)) from exc
             continue
+        except camera_errors() as exc:
+            raise CameraSetupError(str(exc), exit_code=1) from exc
         listed[pv.name] = {"value": pv.value, "allowed": list(pv.allowed)}
     return listed
 
@@ -171,6 +182,8 @@ def set_camera_property(cam: Any, name: str, value: str) -> dict[str, dict[str, 
         pv = cam.set_property(name, value)
     except (UnknownPropertyName, PropertyNotReported, ValueError, PtpError) as exc:
         raise CameraSetupError(str(exc)) from exc
+    except camera_errors() as exc:
+        raise CameraSetupError(str(exc), exit_code=1) from exc
     return {pv.name: {"value": pv.value, "allowed": list(pv.allowed)}}
 
 

@@ -105,6 +105,13 @@ def table2_heading(run: Table2Run) -> str:
     )
 
 
+def format_table2(run: Table2Run) -> str:
+    """Table 2 as printed: per scene and object, every method's estimate and errors, and the summary."""
+    from mca.processing.evaluate import format_table
+
+    return str(format_table(run.evaluations, run.methods))
+
+
 def table2_document(
     evaluations: list[Any], methods: list[str], profile_name: str, optics: Any, scale: float, seed: int
 ) -> dict[str, Any]:
@@ -235,6 +242,13 @@ def rgbd_document(run: RgbdRun) -> dict[str, Any]:
     from mca.capture.rgbd_evaluation import rgbd_report
 
     return json_safe(rgbd_report(run.rows, run.methods))
+
+
+def format_rgbd(run: RgbdRun) -> str:
+    """The per-pixel figures as printed: per render, then median and worst per group and overall."""
+    from mca.processing.evaluate import format_rgbd_table
+
+    return str(format_rgbd_table(run.rows, run.methods))
 
 
 RGBD_LEGEND = (

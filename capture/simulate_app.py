@@ -175,6 +175,8 @@ def simulate_rgbd(
         realism = Realism(sensor=SensorModel(iso=options.iso), crosstalk=matrix, vignetting=options.vignetting)
         source = read_rgbd_source(image, disparity, options.disparity_scale, name=options.name)
         if options.full_size:
+            if not camera_profile.width_px or not camera_profile.height_px:
+                raise ValueError(f"profile '{camera_profile.name}' has no image size; --full-size needs one")
             aspect = camera_profile.width_px / camera_profile.height_px
             h, w = source.valid.shape
             source = resize_rgbd(source, camera_profile.width_px / min(w, h * aspect), crop_aspect=aspect)

@@ -49,182 +49,51 @@ def calibrate(
     """Calibrate an MCA lens on the bench: the fitted profile's depths match the rail's known distances."""
     import json
 
-    import cv2
-
     from mca.capture import calibration as cal
-    from mca.capture.profiles import load_profile
-    from mca.capture.tether import camera_factory, make_sim_rig
-    from mca.devices.rail import RailError, open_rail
-    from mca.processing.calibration import CalibrationFitError, fit_lens, plot_fit
-    from mca.processing.camera import ProfileError, profile_from_mapping
-
-    def fail(message: str, code: int = 1) -> NoReturn:
-        typer.echo(f"error: {message}", err=True)
-        raise typer.Exit(code)
 
     def say(text: str) -> None:  # the report: on stdout, or on stderr when stdout carries the JSON
         typer.echo(text, err=as_json)
 
-    from mca.capture.config import ConfigError, fill_from_config
-
-    try:
-        chosen = fill_from_config(camera=camera, rail=rail, profile=profile_name)
-    except ConfigError as exc:
-        fail(str(exc), 2)
-    camera, rail, profile_name = str(chosen["camera"]), str(chosen["rail"]), str(chosen["profile"])
-
-    try:
-        profile = load_profile(profile_name)
-        nominal = cal.nominal_lens(profile, offset_px)
-    except (ProfileError, ValueError) as exc:
-        fail(str(exc), 2)
-    at_zero = target_distance_at_zero if target_distance_at_zero is not None else nominal.focus_distance_mm + from_mm
-    try:
-        plan = cal.SweepPlan(from_mm, to_mm, step_mm, at_zero, rail_start)
-        deviation = cal.SimDeviation.parse(sim_deviation)
-    except ValueError as exc:
-        fail(str(exc), 2)
-    directory = shots_dir if shots_dir is not None else out.with_name(out.stem + "-sweep")
-
-    bench = None
-    if camera == "sim":
-        bench = cal.SimBench(profile, plan, deviation, scale=sim_scale)
-        factory = camera_factory("sim", rig=make_sim_rig(bench.frame))
-    else:
-        try:
-            factory = camera_factory(camera)
-        except ValueError as exc:
-            fail(str(exc), 2)
-    say(
-        f"sweep {from_mm:+.1f} .. {to_mm:+.1f} mm step {step_mm} mm: {len(plan.positions_mm)} positions, "
-        f"target at {at_zero:.1f} mm from the lens with the rail at 0; shots in {directory}"
+    request = cal.CalibrationRequest(
+        out=out,
+        camera=camera,
+        rail=rail,
+        profile=profile_name,
+        from_mm=from_mm,
+        to_mm=to_mm,
+        step_mm=step_mm,
+        shots_dir=shots_dir,
+        target_distance_at_zero_mm=target_distance_at_zero,
+        rail_start_mm=rail_start,
+        disparity_offset_px=offset_px,
+        feed_mm_per_min=feed,
+        sim_deviation=sim_deviation,
+        sim_scale=sim_scale,
     )
     try:
-        options = {"sim_speedup": 200.0, "poll_interval_s": 0.01} if rail == "sim" else {}
-        with open_rail(rail, **options) as bench_rail:
-            if bench is not None and rail == "sim":
-                bench.rail_runner = bench_rail.simulator  # type: ignore[attr-defined]
-            elif bench is not None:
-                fail("--camera sim photographs the simulated rail only: use --rail sim with it", 2)
-            outcome = cal.run_sweep(
-                plan,
-                profile,
-                directory,
-                camera_factory=factory,
-                rail=bench_rail,
-                log=lambda m: typer.echo(f"  {m}", err=True),
-                feed_mm_per_min=feed,
-            )
-    except RailError as exc:
-        fail(f"{exc} Nothing was shot at this run's remaining positions; rerun to resume.")
+        setup = cal.plan_calibration(request)
+        say(setup.describe())
+        run = cal.run_calibration(setup, log=lambda m: typer.echo(f"  {m}", err=True))
+    except cal.CalibrationUsageError as exc:
+        _fail(str(exc), 2)
     except cal.CalibrationError as exc:
-        fail(str(exc))
-
-    points = outcome.points
-    try:
-        fit = fit_lens([p.distance_mm for p in points], [p.disparity_px for p in points], nominal)
-    except CalibrationFitError as exc:
-        fail(f"{exc} ({len(points)} points in {directory})")
-    text = cal.calibrated_profile_toml(profile, fit, plan, shots_dir=str(directory))
-    import tomllib
-
-    profile_from_mapping(tomllib.loads(text), str(out))  # the loader accepts what we write
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text, encoding="utf-8")
-    plot = plot_fit(fit, truth=bench.truth if bench is not None else None)
-    plot_path = out.with_suffix(".png")
-    cv2.imwrite(str(plot_path), plot)
-
-    f, s = fit.fitted, fit.sigma
-    say(
-        f"fit over {len(points)} positions ({len(outcome.shot_positions_mm)} shot now): residual rms "
-        f"{fit.residual_rms_px:.4f} px, max depth error {fit.max_depth_error_mm:.3f} mm"
-    )
-    rows = [
-        (
-            "d_a (red-blue) mm",
-            fit.nominal.filter_centre_distance_mm,
-            f.filter_centre_distance_mm,
-            s.get("filter_centre_distance_mm"),
-            bench.truth.filter_centre_distance_mm if bench else None,
-        ),
-        (
-            "d_ls mm",
-            fit.nominal.sensor_distance_mm,
-            f.sensor_distance_mm,
-            s.get("sensor_distance_mm"),
-            bench.truth.sensor_distance_mm if bench else None,
-        ),
-        (
-            "focus distance mm",
-            fit.nominal.focus_distance_mm,
-            f.focus_distance_mm,
-            s.get("focus_distance_mm"),
-            bench.truth.focus_distance_mm if bench else None,
-        ),
-        (
-            "disparity offset px (fixed)",
-            fit.nominal.disparity_offset_px,
-            f.disparity_offset_px,
-            None,
-            bench.truth.disparity_offset_px if bench else None,
-        ),
-    ]
-    header = f"{'':28s}{'nominal':>12s}{'fitted':>12s}{'sigma':>10s}"
-    say(header + (f"{'sim truth':>12s}{'error':>9s}" if bench else ""))
-    for label, nom, value, sigma, truth in rows:
-        line = f"{label:28s}{nom:12.4f}{value:12.4f}{(f'{sigma:.2g}' if sigma is not None else '-'):>10s}"
-        if truth is not None:
-            error = f"{(value - truth) / truth * 100:+.3f}%" if "px" not in label else f"{value - truth:+.3f}px"
-            line += f"{truth:12.4f}{error:>9s}"
+        _fail(str(exc))
+    for line in run.report_lines():
         say(line)
-    model_error = None
-    if bench is not None:
-        import numpy as np
-
-        grid = np.linspace(min(p.distance_mm for p in points), max(p.distance_mm for p in points), 101)
-        model_error = float(np.abs(np.asarray(f.distance_mm(bench.truth.disparity_px(grid))) - grid).max())
-        say(f"depth error of the fitted profile against the simulated lens over the sweep: {model_error:.3f} mm max")
-    say(f"wrote {out} and {plot_path}")
     if as_json:
-        names = ("filter_centre_distance_mm", "sensor_distance_mm", "focus_distance_mm", "disparity_offset_px")
-        document = {
-            "profile": str(out),
-            "plot": str(plot_path),
-            "shots_dir": str(directory),
-            "positions": len(points),
-            "shot_now": len(outcome.shot_positions_mm),
-            "residual_rms_px": fit.residual_rms_px,
-            "max_depth_error_mm": fit.max_depth_error_mm,
-            "parameters": {
-                name: {"nominal": row[1], "fitted": row[2], "sigma": row[3], "sim_truth": row[4]}
-                for name, row in zip(names, rows)
-            },
-            "sim_model_error_mm": model_error,
-        }
-        from mca.capture.outputs import json_safe
-
-        typer.echo(json.dumps(json_safe(document), indent=2))
-
+        typer.echo(json.dumps(run.document(), indent=2))
     if record is not None:
         try:
-            from mca.capture.recording import RerunRecorder
+            cal.record_calibration(run, record)
         except ImportError:
             typer.echo("not recorded: capture.recording is not available", err=True)
             return
-        with RerunRecorder(record) as recorder:
-            recorder.record(
-                "calibration",
-                plot=cv2.cvtColor(plot, cv2.COLOR_BGR2RGB),
-                filter_centre_distance_mm=f.filter_centre_distance_mm,
-                sensor_distance_mm=f.sensor_distance_mm,
-                focus_distance_mm=f.focus_distance_mm,
-                residual_rms_px=fit.residual_rms_px,
-                max_depth_error_mm=fit.max_depth_error_mm,
-                residuals_px=fit.residuals_px,
-                profile=text,
-            )
         say(f"recorded in {record}")
+
+
+def _fail(message: str, code: int = 1) -> NoReturn:
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(code)
 
 
 def register(app: typer.Typer) -> None:

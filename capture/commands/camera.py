@@ -74,12 +74,12 @@ def info(
     debug_logfile: Path | None = LOGFILE_OPTION,
 ) -> None:
     """Model, firmware, serial number, storages and capture method."""
-    from mca.capture.camera_app import camera_errors, camera_info, info_lines
+    from mca.capture.camera_app import CameraSetupError, camera_info, info_lines
 
     cam = _open(camera, debug_logfile, ctx)
     try:
         document = camera_info(cam)
-    except camera_errors() as exc:
+    except CameraSetupError as exc:
         _fail(exc)
     finally:
         cam.close()
@@ -101,13 +101,7 @@ def config(
     debug_logfile: Path | None = LOGFILE_OPTION,
 ) -> None:
     """Show or change camera properties by human name."""
-    from mca.capture.camera_app import (
-        CameraSetupError,
-        camera_errors,
-        camera_properties,
-        property_lines,
-        set_camera_property,
-    )
+    from mca.capture.camera_app import CameraSetupError, camera_properties, property_lines, set_camera_property
 
     if action not in (None, "get", "set") or (action and not name) or (action == "set" and value is None):
         typer.echo("usage: mca camera config [get NAME | set NAME VALUE]", err=True)
@@ -118,7 +112,7 @@ def config(
             listed = set_camera_property(cam, str(name), str(value))
         else:
             listed = camera_properties(cam, name)
-    except (CameraSetupError, *camera_errors()) as exc:
+    except CameraSetupError as exc:
         _fail(exc)
     finally:
         cam.close()

@@ -104,8 +104,7 @@ def _say(text: str) -> None:
 
 def _live(factory: Any, profile: str, record: Path | None, serve: bool, frames: int | None) -> None:
     from mca.capture.live import LiveError, run_live
-    from mca.capture.tether import TetherError
-    from mca.devices.ptp.transport import TransportError
+    from mca.capture.tether import TetherError, TransportError
 
     if record is None and not serve:
         typer.echo("error: --live needs --record FILE.rrd or --serve (where should the preview go?)", err=True)

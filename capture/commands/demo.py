@@ -30,9 +30,8 @@ def register(app: typer.Typer) -> None:
         Fig. 4 scenes through the MCA lens simulator, so each shot has a known ground truth.
         """
         from mca.capture.config import ConfigError, fill_from_config
-        from mca.capture.tether import TetherError
+        from mca.capture.tether import TetherError, TransportError
         from mca.capture.tether_run import demo_camera, open_demo_session, result_summary, shoot
-        from mca.devices.ptp.transport import TransportError
 
         try:
             chosen = fill_from_config(camera=camera, profile=profile)

@@ -81,9 +81,8 @@ def _table2(
     as_json: bool,
     json_file: str | None,
 ) -> None:
-    from mca.capture.evaluation_app import evaluate_table2, table2_document, table2_heading
+    from mca.capture.evaluation_app import evaluate_table2, format_table2, table2_document, table2_heading
     from mca.capture.outputs import write_json
-    from mca.processing.evaluate import format_table
 
     cache = Path(renders) if renders is not None else None
     run = evaluate_table2(profile, scene, scale=scale, seed=seed, renders=cache, peers=peers, on_progress=_say)
@@ -95,7 +94,7 @@ def _table2(
             typer.echo(json.dumps(document, indent=2))
             return
     typer.echo(table2_heading(run))
-    typer.echo(format_table(run.evaluations, run.methods))
+    typer.echo(format_table2(run))
 
 
 def _rgbd(
@@ -107,9 +106,8 @@ def _rgbd(
     only: str | None,
     json_file: str | None,
 ) -> None:
-    from mca.capture.evaluation_app import RGBD_LEGEND, evaluate_rgbd_folder, rgbd_document
+    from mca.capture.evaluation_app import RGBD_LEGEND, evaluate_rgbd_folder, format_rgbd, rgbd_document
     from mca.capture.outputs import write_json
-    from mca.processing.evaluate import format_rgbd_table
 
     def finished(row: Any) -> None:
         parts = [f"{m} bad-1 {100 * row.metrics[m].bad_1:.1f}%" for m in row.metrics]
@@ -126,4 +124,4 @@ def _rgbd(
         typer.echo(json.dumps(rgbd_document(run), indent=2))
         return
     typer.echo(RGBD_LEGEND)
-    typer.echo(format_rgbd_table(run.rows, run.methods))
+    typer.echo(format_rgbd(run))

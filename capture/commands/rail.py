@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import typer
+from typing import Any, NoReturn
 
-SIM_SPEEDUP = 20.0  # `--rail sim` moves this many times faster than the real stage would
+import typer
 
 _RAIL_OPTION = typer.Option(
     None,
@@ -15,25 +15,18 @@ _RAIL_OPTION = typer.Option(
 )
 
 
-def _open(rail_spec: str | None):  # -> devices.rail.GrblRail; imported lazily to keep `mca --help` fast
-    from mca.capture.config import ConfigError, fill_from_config
-    from mca.devices.rail import open_rail
+def _open(rail_spec: str | None) -> Any:  # a devices.rail.Rail; imported lazily to keep `mca --help` fast
+    from mca.capture.config import ConfigError
+    from mca.capture.rail_app import open_configured_rail
 
     try:
-        spec = str(fill_from_config(rail=rail_spec)["rail"])
+        return open_configured_rail(rail_spec)
     except ConfigError as error:
         typer.echo(f"error: {error}", err=True)
         raise typer.Exit(code=2) from None
-    return open_rail(spec, sim_speedup=SIM_SPEEDUP)
 
 
-def _show(status) -> str:
-    return (
-        f"{status.state} at {status.position_mm:.3f} mm from the home switch (machine X {status.machine_x_mm:.3f} mm)"
-    )
-
-
-def _fail(error: Exception) -> None:
+def _fail(error: Exception) -> NoReturn:
     typer.echo(f"error: {error}", err=True)
     raise typer.Exit(code=1)
 
@@ -44,11 +37,11 @@ def register(app: typer.Typer) -> None:
     @rail_app.command("home")
     def home(rail: str | None = _RAIL_OPTION) -> None:
         """Run the homing cycle ($H); the rail then stands at its home switch, unlocked."""
-        from mca.devices.rail import RailError
+        from mca.capture.rail_app import RailError, describe_status
 
         try:
             with _open(rail) as stage:
-                typer.echo(_show(stage.home()))
+                typer.echo(describe_status(stage.home()))
         except RailError as error:
             _fail(error)
 
@@ -60,14 +53,14 @@ def register(app: typer.Typer) -> None:
         home_first: bool = typer.Option(False, "--home", help="Home first (a controller fresh from reset is locked)."),
     ) -> None:
         """Move to an absolute position, wait until idle, and print the position read back."""
-        from mca.devices.rail import RailError
+        from mca.capture.rail_app import RailError, describe_status
 
         try:
             with _open(rail) as stage:
                 if home_first:
                     stage.home()
                 try:
-                    typer.echo(_show(stage.move_to(position_mm, feed_mm_per_min=feed)))
+                    typer.echo(describe_status(stage.move_to(position_mm, feed_mm_per_min=feed)))
                 except KeyboardInterrupt:
                     stage.halt()
                     raise
@@ -77,11 +70,11 @@ def register(app: typer.Typer) -> None:
     @rail_app.command("status")
     def status(rail: str | None = _RAIL_OPTION) -> None:
         """Print the controller state, the position and the travel."""
-        from mca.devices.rail import RailError
+        from mca.capture.rail_app import RailError, describe_status
 
         try:
             with _open(rail) as stage:
-                typer.echo(_show(stage.status()))
+                typer.echo(describe_status(stage.status()))
                 typer.echo(f"travel 0 .. {stage.travel_mm:.3f} mm; controller {stage.banner or 'GRBL'}")
         except RailError as error:
             _fail(error)
