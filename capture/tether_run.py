@@ -153,6 +153,55 @@ def process_unfinished(session: Any, log: Say = _quiet) -> None:
         session._process(row.id, path)
 
 
+class CaptureSetupError(ValueError):
+    """Options of `mca capture` that cannot make a run (bad config, quality, file-name pattern, hook, camera)."""
+
+
+@dataclass
+class CaptureSetup:
+    """`mca capture`'s options checked: the camera (and its traffic log), profile, file-name pattern, hook script."""
+
+    camera: Any  # a `capture.camera_app.CameraChoice`
+    profile: str
+    pattern: Any = None  # a `FilenamePattern`, or None for the camera's names
+    hook: Any = None  # a `HookScript`, or None
+
+
+def prepare_capture(
+    camera: str | None = None,
+    profile: str | None = None,
+    *,
+    quality: str = "full",
+    filename: str | None = None,
+    hook_script: Path | None = None,
+    debug_logfile: Path | None = None,
+) -> CaptureSetup:
+    """Fill camera and profile from the config and check every option before the camera is opened.
+
+    Raises `CaptureSetupError` naming the option or file at fault."""
+    from mca.capture.api import check_quality
+    from mca.capture.camera_app import CameraSetupError, choose_camera
+    from mca.capture.config import ConfigError, fill_from_config
+    from mca.capture.file_names import FilenamePattern, FilenamePatternError
+    from mca.capture.hooks import HookScript
+
+    try:
+        chosen = fill_from_config(camera=camera, profile=profile)
+    except ConfigError as exc:
+        raise CaptureSetupError(str(exc)) from exc
+    try:
+        check_quality(quality)
+    except ValueError as exc:
+        raise CaptureSetupError(f"--quality: {exc}") from exc
+    try:
+        pattern = FilenamePattern.parse(filename) if filename is not None else None
+        hook = HookScript(hook_script) if hook_script is not None else None
+        choice = choose_camera(chosen["camera"], debug_logfile, "mca capture")
+    except (FilenamePatternError, ValueError, CameraSetupError) as exc:
+        raise CaptureSetupError(str(exc)) from exc
+    return CaptureSetup(choice, str(chosen["profile"]), pattern, hook)
+
+
 @dataclass(frozen=True)
 class CaptureOptions:
     """What a run does once connected: `count` shots `interval_s` apart, or shots from the shutter button."""

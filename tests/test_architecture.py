@@ -8,6 +8,7 @@ their simulated twins. A violation names the file, the line and the import.
 from __future__ import annotations
 
 import ast
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -231,3 +232,141 @@ def test_a_planted_bad_import_is_caught(
     planted = Module(path, f'"""planted."""\n\n\ndef f() -> None:\n    {line}\n')
     caught = check([*[m for m in modules if m.path != path], planted])
     assert len(caught) >= 1 and all(c.startswith(f"{path}:5: imports ") for c in caught), caught
+
+
+# --- commands are thin shells over application functions (issue 17) ------------------------------------------------
+
+# The most statements one function of capture/commands/ may hold (its own: a nested function counts as one and is
+# measured on its own; imports, the docstring and every nested statement count). Since the application logic moved
+# into capture/ (issue 17) the largest are `demo` (28: the shots' lines), `_shoot` of `mca capture` (26) and
+# `process` (24); before the move `capture` held 92, `calibrate` 87, `process` 73 and `evaluate` 54. 30 leaves room
+# for an option and fails as soon as a command grows a loop of real work again.
+MAX_COMMAND_STATEMENTS = 30
+
+# What a command module may import: typer, the standard library, and the application (mca.capture). The
+# algorithms and the devices are reached through application functions, never from a command.
+COMMAND_IMPORTS_ALLOWED = frozenset({"typer", "mca"}) | frozenset(sys.stdlib_module_names)
+
+# Helpers that were once defined in a command and now live in the application, with their homes.
+MOVED_FROM_COMMANDS = {
+    "report_document": "mca.capture.batch",
+    "stop_on_sigterm": "mca.capture.batch",
+    "resolve_profile": "mca.capture.profiles",
+    "table2_document": "mca.capture.evaluation_app",
+    "cached_paper_scene": "mca.capture.evaluation_app",
+    "evaluate_rgbd_folder": "mca.capture.evaluation_app",
+    "review_rows": "mca.capture.review",
+    "format_table": "mca.capture.review",
+    "set_config_values": "mca.capture.config",
+    "capture_document": "mca.capture.tether_run",
+    "process_unfinished": "mca.capture.tether_run",
+    "shot_line": "mca.capture.tether_run",
+    "simulate_paper": "mca.capture.simulate_app",
+    "simulate_rgbd": "mca.capture.simulate_app",
+    "simulate_rgbd_tree": "mca.capture.simulate_app",
+    "viewer_command": "mca.capture.viewer",
+    "has_display": "mca.capture.viewer",
+    "describe_profile": "mca.capture.profiles",
+    "run_calibration": "mca.capture.calibration",
+}
+
+
+def own_statements(function: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
+    """The statements of `function` at any depth of its blocks, a nested function or class counted as one."""
+    count = 0
+    pending: list[ast.stmt] = list(function.body)
+    while pending:
+        statement = pending.pop()
+        count += 1
+        if isinstance(statement, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            continue
+        for name in ("body", "orelse", "finalbody"):
+            pending += [s for s in getattr(statement, name, []) if isinstance(s, ast.stmt)]
+        for handler in getattr(statement, "handlers", []):
+            pending += handler.body
+        for case in getattr(statement, "cases", []):
+            pending += case.body
+    return count
+
+
+def command_functions(modules: list[Module]) -> list[tuple[str, str, int]]:
+    """(path:line, function name, own statements) of every function in `modules`, nested ones too."""
+    found = []
+    for module in modules:
+        for node in ast.walk(ast.parse(module.source, filename=module.path)):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                found.append((f"{module.path}:{node.lineno}", node.name, own_statements(node)))
+    return found
+
+
+def fat_commands(modules: list[Module], limit: int = MAX_COMMAND_STATEMENTS) -> list[str]:
+    return [f"{where}: {name} has {n} statements" for where, name, n in command_functions(modules) if n > limit]
+
+
+def command_import_violations(modules: list[Module]) -> list[str]:
+    bad = []
+    for module in modules:
+        for imp in module_imports(module):
+            if top(imp.module) not in COMMAND_IMPORTS_ALLOWED or (
+                top(imp.module) == "mca" and not is_under(imp.module, "mca.capture")
+            ):
+                bad.append(str(imp))
+    return sorted(set(bad))
+
+
+def test_the_statement_count_sees_nested_blocks_and_not_nested_functions() -> None:
+    source = (
+        "def f(x):\n"
+        "    import os\n"
+        "    try:\n        if x:\n            a = 1\n        else:\n            a = 2\n"
+        "    except ValueError:\n        a = 3\n    finally:\n        pass\n"
+        "    def g():\n        return 1\n        return 2\n"
+        "    for i in range(3):\n        print(i)\n"
+        "    return a\n"
+    )
+    counts = {name: n for _, name, n in command_functions([Module("capture/commands/x.py", source)])}
+    # f: import, try, if, a=1, a=2, a=3, pass, def g, for, print, return = 11; g: 2
+    assert counts == {"f": 11, "g": 2}
+
+
+def test_no_command_function_holds_application_logic() -> None:
+    commands = [m for m in room_modules("capture/commands") if not m.path.endswith("__init__.py")]
+    assert len(commands) >= 10
+    bad = fat_commands(commands)
+    assert not bad, (
+        f"a command parses options, calls one application function and prints (at most "
+        f"{MAX_COMMAND_STATEMENTS} statements); move the work into capture/:\n" + "\n".join(bad)
+    )
+    fat = Module("capture/commands/_planted.py", "def f():\n" + "    x = 1\n" * (MAX_COMMAND_STATEMENTS + 1))
+    assert fat_commands([fat]) == [f"capture/commands/_planted.py:1: f has {MAX_COMMAND_STATEMENTS + 1} statements"]
+
+
+def test_commands_import_typer_and_only_the_application() -> None:
+    commands = [m for m in room_modules("capture/commands") if not m.path.endswith("__init__.py")]
+    for module in commands:
+        assert any(imp.module == "typer" for imp in module_imports(module)), f"{module.path} does not import typer"
+    bad = command_import_violations(commands)
+    assert not bad, (
+        "commands reach the algorithms and the devices through application functions in capture/:\n" + "\n".join(bad)
+    )
+    for line in (
+        "from mca.processing.evaluate import format_table",
+        "from mca.devices.rail import open_rail",
+        "import numpy",
+    ):
+        planted = Module("capture/commands/_planted.py", f"def f() -> None:\n    {line}\n")
+        assert command_import_violations([planted]), line
+
+
+@pytest.mark.parametrize(("name", "home"), sorted(MOVED_FROM_COMMANDS.items()))
+def test_moved_helpers_live_in_the_application_not_in_commands(name: str, home: str) -> None:
+    import importlib
+
+    assert callable(getattr(importlib.import_module(home), name))
+    defined = [
+        f"{module.path}:{node.lineno}"
+        for module in room_modules("capture/commands")
+        for node in ast.walk(ast.parse(module.source))
+        if isinstance(node, (ast.FunctionDef, ast.ClassDef)) and node.name == name
+    ]
+    assert not defined, f"{name} is defined in a command again: {defined}; its home is {home}"

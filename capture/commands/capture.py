@@ -61,41 +61,33 @@ def capture(
     as_json: bool = typer.Option(False, "--json", help="print the run's files as JSON (stdout); lines go to stderr"),
 ) -> None:
     """Capture with a tethered camera; every shot is verified, fsynced and catalogued in OUT/catalog.sqlite."""
-    from mca.capture.api import check_quality
-    from mca.capture.camera_app import CameraSetupError, choose_camera
-    from mca.capture.config import ConfigError, fill_from_config
-    from mca.capture.file_names import FilenamePattern, FilenamePatternError
-    from mca.capture.hooks import HookScript
-    from mca.capture.tether_run import CaptureOptions
+    from mca.capture.tether_run import CaptureOptions, CaptureSetupError, prepare_capture
 
     try:
-        chosen = fill_from_config(camera=camera, profile=profile)
-        check_quality(quality)
-    except ConfigError as exc:
+        setup = prepare_capture(
+            camera,
+            profile,
+            quality=quality,
+            filename=filename,
+            hook_script=hook_script,
+            debug_logfile=debug_logfile,
+        )
+    except CaptureSetupError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
-    except ValueError as exc:
-        typer.echo(f"error: --quality: {exc}", err=True)
-        raise typer.Exit(2) from exc
-    try:
-        pattern = FilenamePattern.parse(filename) if filename is not None else None
-        hook = HookScript(hook_script) if hook_script is not None else None
-        choice = choose_camera(chosen["camera"], debug_logfile, "mca capture")
-    except (FilenamePatternError, ValueError, CameraSetupError) as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2) from exc
-    if choice.traffic is not None:
-        ctx.call_on_close(choice.traffic.close)
+    if setup.camera.traffic is not None:
+        ctx.call_on_close(setup.camera.traffic.close)
     if live:
-        _live(choice.factory, str(chosen["profile"]), record, serve, frames)
+        _live(setup.camera.factory, setup.profile, record, serve, frames)
         return
     if out is None:
         typer.echo("error: --out DIR is required (the folder for the files and catalog.sqlite)", err=True)
         raise typer.Exit(2)
-    session = dict(process=process, profile=chosen["profile"], quality=quality, record=record, hook=hook)
-    session.update(delete_after_verify=delete_after_verify, filename_pattern=pattern, capture_target=capture_target)
+    session = dict(process=process, profile=setup.profile, quality=quality, record=record, hook=setup.hook)
+    session.update(delete_after_verify=delete_after_verify, capture_target=capture_target)
+    session.update(filename_pattern=setup.pattern)
     run = CaptureOptions(count=count, interval_s=interval, tethered=tethered, process=process)
-    _shoot(choice.factory, out, session, run, as_json)
+    _shoot(setup.camera.factory, out, session, run, as_json)
 
 
 def _say(text: str) -> None:
