@@ -608,6 +608,8 @@ def plan_calibration(request: CalibrationRequest) -> CalibrationSetup:
     out = request.out
     directory = request.shots_dir if request.shots_dir is not None else out.with_name(out.stem + "-sweep")
     bench = None
+    if camera == "sim" and rail != "sim":
+        raise CalibrationUsageError("--camera sim photographs the simulated rail only: use --rail sim with it")
     if camera == "sim":
         bench = SimBench(profile, plan, deviation, scale=request.sim_scale)
         factory = camera_factory("sim", rig=make_sim_rig(bench.frame))
@@ -622,8 +624,7 @@ def plan_calibration(request: CalibrationRequest) -> CalibrationSetup:
 def run_calibration(setup: CalibrationSetup, log: Callable[[str], None] = lambda text: None) -> CalibrationRun:
     """Sweep the rail, fit d_a and d_ls, and write the calibrated profile (checked by the loader) and its plot.
 
-    Raises `CalibrationUsageError` when the simulated camera is paired with a real rail, and
-    `CalibrationError` when the rail, the camera or the fit fails (what was shot is kept; rerun to resume)."""
+    Raises `CalibrationError` when the rail, the camera or the fit fails (what was shot is kept; rerun to resume)."""
     import tomllib
 
     import cv2
@@ -636,10 +637,8 @@ def run_calibration(setup: CalibrationSetup, log: Callable[[str], None] = lambda
     try:
         options = {"sim_speedup": 200.0, "poll_interval_s": 0.01} if setup.rail == "sim" else {}
         with open_rail(setup.rail, **options) as bench_rail:
-            if bench is not None and setup.rail == "sim":
+            if bench is not None:  # the simulated camera looks at the simulated rail (`plan_calibration` pairs them)
                 bench.rail_runner = bench_rail.simulator  # type: ignore[attr-defined]
-            elif bench is not None:
-                raise CalibrationUsageError("--camera sim photographs the simulated rail only: use --rail sim with it")
             outcome = run_sweep(
                 setup.plan,
                 setup.profile,
