@@ -308,7 +308,7 @@ class SimBench:
     def __init__(
         self, profile: CameraProfile, plan: SweepPlan, deviation: SimDeviation, *, scale: float = 0.25, seed: int = 0
     ) -> None:
-        from mca.processing.simulate import SimulationOptics
+        from mca.devices.sim.render import SimulationOptics
 
         self.profile = profile
         self.plan = plan
@@ -332,8 +332,8 @@ class SimBench:
         return gp.rail_mm(sim.machine_x_mm, gp.GrblAxisSettings.from_settings(sim.settings))
 
     def frame(self, index: int) -> tuple[str, bytes]:
-        from mca.capture.simulated_shots import capture_cr2_bytes, render_scene
-        from mca.processing.scenes import target_scene
+        from mca.devices.sim.scenes import target_scene
+        from mca.devices.sim.world import capture_cr2_bytes, render_scene
 
         distance = self.plan.distance_mm(self.carriage_rail_mm())
         self.distances_shot_mm.append(distance)

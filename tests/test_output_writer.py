@@ -13,7 +13,7 @@ from test_process import fake_pipeline, make_png
 
 from mca.capture.output_folders import STAGING_MARK
 from mca.capture.pipeline_app import RESULT_NAME, process_file
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
 
 WAIT_S = 30.0  # how long a pipeline waits for a file to appear (a loaded machine is slow; this is no timing test)
 

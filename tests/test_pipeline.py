@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
+from mca.devices.sim.render import SensorModel, SimulationOptics, render
+from mca.devices.sim.scenes import paper_scene, target_scene
 from mca.processing.evaluate import bayer_planes
 from mca.processing.mpi import composite
 from mca.processing.pipeline import (
@@ -14,8 +16,6 @@ from mca.processing.pipeline import (
     default_disparity_range_px,
     run_pipeline,
 )
-from mca.processing.scenes import paper_scene, target_scene
-from mca.processing.simulate import SensorModel, SimulationOptics, render
 
 
 class ListRecorder:

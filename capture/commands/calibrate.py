@@ -52,8 +52,8 @@ def calibrate(
     import cv2
 
     from mca.capture import calibration as cal
-    from mca.capture.profiles import load_profile
-    from mca.capture.tether import camera_factory, make_sim_rig
+    from mca.devices.cameras import make_sim_rig, open_camera
+    from mca.devices.profiles import load_profile
     from mca.devices.rail import RailError, open_rail
     from mca.processing.calibration import CalibrationFitError, fit_lens, plot_fit
     from mca.processing.camera import ProfileError, profile_from_mapping
@@ -89,10 +89,10 @@ def calibrate(
     bench = None
     if camera == "sim":
         bench = cal.SimBench(profile, plan, deviation, scale=sim_scale)
-        factory = camera_factory("sim", rig=make_sim_rig(bench.frame))
+        factory = open_camera("sim", rig=make_sim_rig(bench.frame))
     else:
         try:
-            factory = camera_factory(camera)
+            factory = open_camera(camera)
         except ValueError as exc:
             fail(str(exc), 2)
     say(

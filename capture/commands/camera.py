@@ -31,7 +31,7 @@ def _echo_json(document: Any) -> None:
 def _open(spec: str | None, debug_logfile: Path | None = None, ctx: typer.Context | None = None):
     """Open the camera `spec` names (None: the config file's `camera`, else auto), logging PTP to a file if asked."""
     from mca.capture.config import ConfigError, fill_from_config
-    from mca.capture.tether import camera_factory
+    from mca.devices.cameras import open_camera
     from mca.devices.ptp.camera import PropertyNotReported, PtpError
     from mca.devices.ptp.codec import ProtocolError
     from mca.devices.ptp.transport import TransportError
@@ -53,7 +53,7 @@ def _open(spec: str | None, debug_logfile: Path | None = None, ctx: typer.Contex
         if ctx is not None:
             ctx.call_on_close(traffic.close)  # when the command ends, however it ends
     try:
-        return camera_factory(spec, traffic_log=traffic.write if traffic is not None else None)()
+        return open_camera(spec, traffic_log=traffic.write if traffic is not None else None)()
     except ValueError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
@@ -76,7 +76,7 @@ def list_cameras(
     except TransportError as exc:
         typer.echo(f"warning: {exc}", err=True)
     if sim:
-        from mca.capture.tether import make_sim_rig
+        from mca.devices.cameras import make_sim_rig
 
         found += [
             dict(port="sim", manufacturer=c.manufacturer, product=c.product, serial_number=c.serial_number)
@@ -253,15 +253,15 @@ def serve_sim(
     scenario: str = typer.Option("none", "--scenario", help="a fault scenario of the simulated body"),
 ) -> None:
     """Serve the simulated EOS 70D over PTP/IP (for gphoto2 and other PTP/IP initiators) until Ctrl-C."""
-    from mca.capture.tether import default_sim_frame_source
-    from mca.devices.sim_eos70d.faults import scenario as named_scenario
-    from mca.devices.sim_eos70d.ptpip_server import PtpIpServer, parse_address
-    from mca.devices.sim_eos70d.responder import SimEos70D
+    from mca.devices.sim.eos70d.faults import scenario as named_scenario
+    from mca.devices.sim.eos70d.ptpip_server import PtpIpServer, parse_address
+    from mca.devices.sim.eos70d.responder import SimEos70D
+    from mca.devices.sim.world import scene_frame_source
 
     try:
         chosen = named_scenario(scenario)
         host, port = parse_address(ptpip)
-        sim = SimEos70D(default_sim_frame_source(), serial_number=serial, behaviour=chosen.behaviour)
+        sim = SimEos70D(scene_frame_source(), serial_number=serial, behaviour=chosen.behaviour)
         server = PtpIpServer(sim, host, port, faults=chosen.faults)
     except (OSError, ValueError) as exc:
         typer.echo(f"error: cannot serve the simulated camera on {ptpip}: {exc}", err=True)

@@ -173,7 +173,8 @@ def capture(
     import threading
 
     from mca.capture.config import ConfigError, fill_from_config
-    from mca.capture.tether import TetherError, TetherSession, camera_factory
+    from mca.capture.tether import TetherError, TetherSession
+    from mca.devices.cameras import open_camera
     from mca.devices.ptp.transport import TransportError
 
     try:
@@ -211,7 +212,7 @@ def capture(
             raise typer.Exit(2) from exc
         ctx.call_on_close(traffic.close)
     try:
-        factory = camera_factory(camera, traffic_log=traffic.write if traffic is not None else None)
+        factory = open_camera(camera, traffic_log=traffic.write if traffic is not None else None)
     except ValueError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc

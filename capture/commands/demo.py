@@ -59,14 +59,10 @@ def register(app: typer.Typer) -> None:
         Fig. 4 scenes through the MCA lens simulator, so each shot has a known ground truth.
         """
         from mca.capture.config import ConfigError, fill_from_config
-        from mca.capture.tether import (
-            TetherError,
-            TetherSession,
-            camera_factory,
-            default_sim_frame_source,
-            make_sim_rig,
-        )
+        from mca.capture.tether import TetherError, TetherSession
+        from mca.devices.cameras import make_sim_rig, open_camera
         from mca.devices.ptp.transport import TransportError
+        from mca.devices.sim.world import scene_frame_source
 
         try:
             chosen = fill_from_config(camera=camera, profile=profile)
@@ -88,10 +84,10 @@ def register(app: typer.Typer) -> None:
                 size_value: str | float = float(size)
             except ValueError:
                 size_value = size
-            factory = camera_factory("sim", rig=make_sim_rig(default_sim_frame_source(size_value)))
+            factory = open_camera("sim", rig=make_sim_rig(scene_frame_source(size_value)))
             typer.echo(f"camera: simulated Canon EOS 70D ({size} frames of the paper's Fig. 4 scenes)", err=True)
         else:
-            factory = camera_factory(spec)
+            factory = open_camera(spec)
             typer.echo(f"camera: {spec}", err=True)
 
         recording = out / "demo.rrd"

@@ -59,7 +59,9 @@ def register(app: typer.Typer) -> None:
         import json
         import time
 
-        from mca.capture.profiles import load_profile
+        from mca.devices.profiles import load_profile
+        from mca.devices.sim.render import SensorModel, SimulationOptics, render
+        from mca.devices.sim.scenes import paper_scene, scene_names
         from mca.processing.camera import ProfileError
         from mca.processing.evaluate import bayer_planes, evaluate_scene, format_table
         from mca.processing.peers import colour_line_wta, sgbm_disparity
@@ -69,8 +71,6 @@ def register(app: typer.Typer) -> None:
             default_disparity_range_px,
             run_pipeline,
         )
-        from mca.processing.scenes import paper_scene, scene_names
-        from mca.processing.simulate import SensorModel, SimulationOptics, render
 
         try:
             camera = load_profile(profile)
@@ -177,7 +177,8 @@ def _cached_paper_scene(folder: Path, name: str, camera, optics, scale: float, s
     import numpy as np
 
     from mca.capture.raw import read_raw
-    from mca.capture.simulated_shots import TRUTH_DIR, render_scene, write_capture
+    from mca.capture.simulated_shots import TRUTH_DIR, write_capture
+    from mca.devices.sim.world import render_scene
 
     cr2 = folder / f"{name}.CR2"
     truth_path = folder / TRUTH_DIR / f"{name}.truth.json"

@@ -24,7 +24,7 @@ def register(app: typer.Typer) -> None:
 
         Signs: positive means farther than the focus plane.
         """
-        from mca.capture.profiles import load_profile
+        from mca.devices.profiles import load_profile
         from mca.processing.camera import ProfileError
         from mca.processing.optics import MCAOptics
 

@@ -13,7 +13,7 @@ def resolve_profile(name: str | None):
     data (results in disparity pixels only)."""
     import dataclasses
 
-    from mca.capture.profiles import DEFAULT_PROFILE, load_profile
+    from mca.devices.profiles import DEFAULT_PROFILE, load_profile
 
     if name is not None and name.lower() == "none":
         base = load_profile(DEFAULT_PROFILE)

@@ -6,7 +6,7 @@ import typer
 
 
 def _describe(name_or_path: str) -> str:
-    from mca.capture.profiles import load_profile
+    from mca.devices.profiles import load_profile
     from mca.processing.optics import MCAOptics
 
     p = load_profile(name_or_path)
@@ -52,7 +52,7 @@ def register(app: typer.Typer) -> None:
     @profile_app.command("list")
     def list_profiles() -> None:
         """List the built-in profiles."""
-        from mca.capture.profiles import builtin_names, load_profile
+        from mca.devices.profiles import builtin_names, load_profile
 
         for name in builtin_names():
             p = load_profile(name)

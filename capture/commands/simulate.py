@@ -74,7 +74,7 @@ def register(app: typer.Typer) -> None:
         Paper scenes (default): the seven scenes of the paper's Fig. 4 as CR2s. --from-rgbd IMAGE DISPARITY:
         one real photograph with known depth. --from-rgbd-tree DIR: every scene of a Middlebury-style tree
         with randomised realism (docs/simulator.md); add --dev-set for the development set."""
-        from mca.capture.profiles import load_profile
+        from mca.devices.profiles import load_profile
         from mca.processing.camera import ProfileError
 
         try:
@@ -131,8 +131,9 @@ def register(app: typer.Typer) -> None:
 def _paper(camera_profile, scene: str, out_dir: Path, size: str, seed: int) -> None:
     import time
 
-    from mca.capture.simulated_shots import SIZES, render_scene, write_capture
-    from mca.processing.scenes import scene_names
+    from mca.capture.simulated_shots import write_capture
+    from mca.devices.sim.scenes import scene_names
+    from mca.devices.sim.world import SIZES, render_scene
 
     names = scene_names() if scene == "all" else [scene]
     unknown = [n for n in names if n not in scene_names()]
@@ -186,8 +187,8 @@ def _single(
         resize_rgbd,
         write_rgbd_capture,
     )
-    from mca.processing.render_rgbd import DepthRange, Realism
-    from mca.processing.simulate import SensorModel
+    from mca.devices.sim.render import SensorModel
+    from mca.devices.sim.render_rgbd import DepthRange, Realism
 
     if camera_profile.lens is None:
         typer.echo(f"error: profile '{camera_profile.name}' has no lens; use one with optics (paper-70d)", err=True)
