@@ -21,9 +21,9 @@ from pathlib import Path
 
 
 def make_inputs(folder: Path, count: int, size: str) -> None:
-    from mca.capture.profiles import load_profile
-    from mca.capture.simulated_shots import capture_cr2_bytes, render_scene
-    from mca.processing.scenes import scene_names
+    from mca.devices.profiles import load_profile
+    from mca.devices.sim.scenes import scene_names
+    from mca.devices.sim.world import capture_cr2_bytes, render_scene
 
     profile = load_profile("paper-70d")
     scenes = scene_names()

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mca.capture.cr2 import EOS_70D_ACTIVE_HEIGHT_PX, EOS_70D_ACTIVE_WIDTH_PX, cr2_bytes
 from mca.capture.raw import read_raw
+from mca.devices.sim.cr2 import EOS_70D_ACTIVE_HEIGHT_PX, EOS_70D_ACTIVE_WIDTH_PX, cr2_bytes
 
 
 def _scene_mosaic(rng: np.random.Generator) -> np.ndarray:

@@ -19,7 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 os.environ.setdefault("RERUN_ANALYTICS", "0")
 
 from mca.capture.live import run_live
-from mca.capture.tether import camera_factory, make_sim_rig
+from mca.devices.cameras import make_sim_rig, open_camera
 
 
 def main() -> None:
@@ -28,7 +28,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=40)
     args = parser.parse_args()
     rig = make_sim_rig(lambda i: ("IMG.CR2", b"II*\x00"))
-    factory = camera_factory("sim", rig=rig)
+    factory = open_camera("sim", rig=rig)
     rates, previews = [], []
     with tempfile.TemporaryDirectory() as tmp:
         run_live(factory, record=Path(tmp) / "warm.rrd", frames=2)  # renders the simulated scene once

@@ -14,10 +14,10 @@ import time
 
 
 def _child(planes, scene: str, scale: float, runs: int, queue) -> None:
-    from mca.capture.profiles import load_profile
+    from mca.devices.profiles import load_profile
+    from mca.devices.sim.render import SimulationOptics
     from mca.processing.peers import sgbm_disparity
     from mca.processing.pipeline import RGGB_HALF_RES_OFFSETS_PX, default_disparity_range_px, run_pipeline
-    from mca.processing.simulate import SimulationOptics
 
     optics = SimulationOptics.from_profile(load_profile("paper-70d"), scale)
     base_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -54,10 +54,10 @@ def main() -> None:
     parser.add_argument("--scale", type=float, default=1.0)
     args = parser.parse_args()
 
-    from mca.capture.profiles import load_profile
+    from mca.devices.profiles import load_profile
+    from mca.devices.sim.render import SensorModel, SimulationOptics, render
+    from mca.devices.sim.scenes import paper_scene
     from mca.processing.evaluate import bayer_planes
-    from mca.processing.scenes import paper_scene
-    from mca.processing.simulate import SensorModel, SimulationOptics, render
 
     optics = SimulationOptics.from_profile(load_profile("paper-70d"), args.scale)
     sensor = SensorModel()

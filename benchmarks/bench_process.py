@@ -78,7 +78,7 @@ def _peers_child(cr2: str, profile_name: str, queue) -> None:
     import rawpy
 
     from mca.capture.api import optics_for, read_input
-    from mca.capture.profiles import load_profile
+    from mca.devices.profiles import load_profile
     from mca.processing.peers import sgbm_disparity
     from mca.processing.pipeline import default_disparity_range_px
 
@@ -113,8 +113,9 @@ def _median(values) -> float:
 
 
 def make_sim(folder: Path, scene: str, scale: float = 1.0) -> tuple[Path, str]:
-    from mca.capture.profiles import load_profile
-    from mca.capture.simulated_shots import render_scene, write_capture
+    from mca.capture.simulated_shots import write_capture
+    from mca.devices.profiles import load_profile
+    from mca.devices.sim.world import render_scene
 
     profile = load_profile("paper-70d")
     capture = render_scene(scene, profile, size="full" if scale == 1.0 else scale, seed=0)

@@ -16,8 +16,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mca.devices.ptp.camera import Camera
 from mca.devices.ptp.transport_usb import UsbTransport, find_cameras
-from mca.devices.sim_eos70d.responder import SimEos70D, deterministic_frame
-from mca.devices.sim_eos70d.usb_backend import USB2_BYTES_PER_S, SimUsbBackend
+from mca.devices.sim.eos70d.responder import SimEos70D, deterministic_frame
+from mca.devices.sim.eos70d.usb_backend import USB2_BYTES_PER_S, SimUsbBackend
 
 RAW_20MP_BYTES = 25 * 1024 * 1024  # a 70D RAW (20.2 MP, 14 bit, lossless JPEG) is about 25 MB
 
@@ -43,13 +43,14 @@ def download_throughput(size_bytes: int = 64 * 1024 * 1024, repeats: int = 5, bl
 
 def shot_to_result_latency(repeats: int = 3) -> tuple[float, float]:
     """Seconds from the release to the verified, catalogued file (and to a processed result when the pipeline exists)."""
-    from mca.capture.tether import TetherSession, camera_factory, make_sim_rig
+    from mca.capture.tether import TetherSession
+    from mca.devices.cameras import make_sim_rig, open_camera
 
     frame = deterministic_frame(1, RAW_20MP_BYTES)
     rig = make_sim_rig(lambda i: (f"IMG_{i:04d}.CR2", frame), pace_bytes_per_s=USB2_BYTES_PER_S)
     times = []
     with tempfile.TemporaryDirectory() as out:
-        session = TetherSession(camera_factory("sim", rig=rig), Path(out))
+        session = TetherSession(open_camera("sim", rig=rig), Path(out))
         session.connect()
         for _ in range(repeats):
             t = time.perf_counter()
@@ -64,22 +65,23 @@ def shot_to_processed_latency(repeats: int = 3) -> tuple[float, float]:
 
     Returns (median latency, median seconds of that spent downloading and verifying).
     """
-    from mca.capture.profiles import load_profile
-    from mca.capture.simulated_shots import capture_cr2_bytes, render_scene
-    from mca.capture.tether import TetherSession, camera_factory, make_sim_rig
+    from mca.capture.tether import TetherSession
+    from mca.devices.cameras import make_sim_rig, open_camera
+    from mca.devices.profiles import load_profile
+    from mca.devices.sim.world import capture_cr2_bytes, render_scene
 
     profile = load_profile("paper-70d")
     frame = capture_cr2_bytes(render_scene("paper-c", profile, size="full", seed=1), profile)
     rig = make_sim_rig(lambda i: (f"IMG_{i:04d}.CR2", frame), pace_bytes_per_s=USB2_BYTES_PER_S)
     totals, transfers = [], []
     with tempfile.TemporaryDirectory() as out:
-        fetch = TetherSession(camera_factory("sim", rig=rig), Path(out) / "fetch")
+        fetch = TetherSession(open_camera("sim", rig=rig), Path(out) / "fetch")
         fetch.connect()
         t = time.perf_counter()
         fetch.capture(1)
         transfers.append(time.perf_counter() - t)
         fetch.close()
-        session = TetherSession(camera_factory("sim", rig=rig), Path(out) / "shots", process=True, profile="paper-70d")
+        session = TetherSession(open_camera("sim", rig=rig), Path(out) / "shots", process=True, profile="paper-70d")
         session.connect()
         session.capture(1)  # warm-up: imports, thread pools
         for _ in range(repeats):

@@ -26,8 +26,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from mca.capture.profiles import load_profile
 from mca.capture.recording import RerunRecorder
+from mca.devices.profiles import load_profile
 from mca.processing.optics import MCAOptics
 
 INPUT_W, INPUT_H = 5472, 3648

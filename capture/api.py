@@ -123,7 +123,7 @@ def resolve_profile(profile: str | os.PathLike[str] | CameraProfile) -> CameraPr
     """A `CameraProfile` as given, or loaded from a built-in name ("paper-70d") or a TOML path."""
     if isinstance(profile, CameraProfile):
         return profile
-    from mca.capture.profiles import load_profile
+    from mca.devices.profiles import load_profile
 
     return load_profile(os.fspath(profile))
 

@@ -941,7 +941,7 @@ def process_settings(
     a missing input, an `--out` that is a file, a `--record` that is not .rrd, `--serve` with workers)."""
     from mca.capture.api import check_quality
     from mca.capture.config import ConfigError, fill_from_config
-    from mca.capture.profiles import resolve_profile
+    from mca.capture.profile_app import resolve_profile
     from mca.capture.raw import default_max_megapixels, parse_megapixels
     from mca.processing.camera import ProfileError
 

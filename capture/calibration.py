@@ -308,7 +308,7 @@ class SimBench:
     def __init__(
         self, profile: CameraProfile, plan: SweepPlan, deviation: SimDeviation, *, scale: float = 0.25, seed: int = 0
     ) -> None:
-        from mca.processing.simulate import SimulationOptics
+        from mca.devices.sim.render import SimulationOptics
 
         self.profile = profile
         self.plan = plan
@@ -332,8 +332,8 @@ class SimBench:
         return gp.rail_mm(sim.machine_x_mm, gp.GrblAxisSettings.from_settings(sim.settings))
 
     def frame(self, index: int) -> tuple[str, bytes]:
-        from mca.capture.simulated_shots import capture_cr2_bytes, render_scene
-        from mca.processing.scenes import target_scene
+        from mca.devices.sim.scenes import target_scene
+        from mca.devices.sim.world import capture_cr2_bytes, render_scene
 
         distance = self.plan.distance_mm(self.carriage_rail_mm())
         self.distances_shot_mm.append(distance)
@@ -590,8 +590,8 @@ def plan_calibration(request: CalibrationRequest) -> CalibrationSetup:
     """Fill the camera, rail and profile from the config, check the sweep and choose the camera (the simulated
     bench for `sim`); a `CalibrationUsageError` names what is wrong before anything moves."""
     from mca.capture.config import ConfigError, fill_from_config
-    from mca.capture.profiles import load_profile
-    from mca.capture.tether import camera_factory, make_sim_rig
+    from mca.devices.cameras import make_sim_rig, open_camera
+    from mca.devices.profiles import load_profile
     from mca.processing.camera import ProfileError
 
     try:
@@ -612,10 +612,10 @@ def plan_calibration(request: CalibrationRequest) -> CalibrationSetup:
         raise CalibrationUsageError("--camera sim photographs the simulated rail only: use --rail sim with it")
     if camera == "sim":
         bench = SimBench(profile, plan, deviation, scale=request.sim_scale)
-        factory = camera_factory("sim", rig=make_sim_rig(bench.frame))
+        factory = open_camera("sim", rig=make_sim_rig(bench.frame))
     else:
         try:
-            factory = camera_factory(camera)
+            factory = open_camera(camera)
         except ValueError as exc:
             raise CalibrationUsageError(str(exc)) from None
     return CalibrationSetup(request, camera, rail, profile, nominal, plan, directory, factory, bench)

@@ -30,7 +30,7 @@ def choose_camera(spec: str | None, debug_logfile: Path | None = None, command: 
     """The factory of the camera `spec` names (None: the config file's `camera`, else auto), logging every PTP
     transaction to `debug_logfile` if given (its header says `command --camera SPEC`)."""
     from mca.capture.config import ConfigError, fill_from_config
-    from mca.capture.tether import camera_factory
+    from mca.devices.cameras import open_camera
 
     try:
         spec = str(fill_from_config(camera=spec)["camera"])
@@ -45,7 +45,7 @@ def choose_camera(spec: str | None, debug_logfile: Path | None = None, command: 
         except OSError as exc:
             raise CameraSetupError(f"--debug-logfile {debug_logfile}: {exc.strerror or exc}") from exc
     try:
-        factory = camera_factory(spec, traffic_log=traffic.write if traffic is not None else None)
+        factory = open_camera(spec, traffic_log=traffic.write if traffic is not None else None)
     except ValueError as exc:
         if traffic is not None:
             traffic.close()
@@ -88,7 +88,7 @@ def list_cameras(sim: bool = False) -> tuple[list[dict[str, Any]], str | None]:
     except TransportError as exc:
         warning = str(exc)
     if sim:
-        from mca.capture.tether import make_sim_rig
+        from mca.devices.cameras import make_sim_rig
 
         found += [
             dict(port="sim", manufacturer=c.manufacturer, product=c.product, serial_number=c.serial_number)
@@ -213,15 +213,15 @@ def diagnose_camera(cam: Any, live_view: bool = False) -> Any:
 
 def sim_server(ptpip: str = "127.0.0.1:15740", serial: str = "SIM70D0000001", scenario: str = "none") -> Any:
     """A `PtpIpServer` of the simulated EOS 70D on the loopback HOST:PORT `ptpip`, with a named fault scenario."""
-    from mca.capture.tether import default_sim_frame_source
-    from mca.devices.sim_eos70d.faults import scenario as named_scenario
-    from mca.devices.sim_eos70d.ptpip_server import PtpIpServer, parse_address
-    from mca.devices.sim_eos70d.responder import SimEos70D
+    from mca.devices.sim.eos70d.faults import scenario as named_scenario
+    from mca.devices.sim.eos70d.ptpip_server import PtpIpServer, parse_address
+    from mca.devices.sim.eos70d.responder import SimEos70D
+    from mca.devices.sim.world import scene_frame_source
 
     try:
         chosen = named_scenario(scenario)
         host, port = parse_address(ptpip)
-        sim = SimEos70D(default_sim_frame_source(), serial_number=serial, behaviour=chosen.behaviour)
+        sim = SimEos70D(scene_frame_source(), serial_number=serial, behaviour=chosen.behaviour)
         return PtpIpServer(sim, host, port, faults=chosen.faults)
     except (OSError, ValueError) as exc:
         raise CameraSetupError(f"cannot serve the simulated camera on {ptpip}: {exc}") from exc

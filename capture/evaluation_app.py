@@ -47,7 +47,9 @@ def evaluate_table2(
 ) -> Table2Run:
     """Render each paper scene (noise, Bayer mosaic) or read it from the `renders` cache, run the pipeline and
     the peers (StereoSGBM, integer WTA) on the same planes, and score them against the truth (Table 2)."""
-    from mca.capture.profiles import load_profile
+    from mca.devices.profiles import load_profile
+    from mca.devices.sim.render import SensorModel, SimulationOptics, render
+    from mca.devices.sim.scenes import paper_scene, scene_names
     from mca.processing.camera import ProfileError
     from mca.processing.evaluate import bayer_planes, evaluate_scene
     from mca.processing.peers import colour_line_wta, sgbm_disparity
@@ -57,8 +59,6 @@ def evaluate_table2(
         default_disparity_range_px,
         run_pipeline,
     )
-    from mca.processing.scenes import paper_scene, scene_names
-    from mca.processing.simulate import SensorModel, SimulationOptics, render
 
     try:
         camera = load_profile(profile)
@@ -168,7 +168,8 @@ def cached_paper_scene(
     import numpy as np
 
     from mca.capture.raw import read_raw
-    from mca.capture.simulated_shots import TRUTH_DIR, render_scene, write_capture
+    from mca.capture.simulated_shots import TRUTH_DIR, write_capture
+    from mca.devices.sim.world import render_scene
 
     cr2 = folder / f"{name}.CR2"
     truth_path = folder / TRUTH_DIR / f"{name}.truth.json"

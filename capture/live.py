@@ -116,7 +116,7 @@ def run_live(
     params: LivePreviewParams | None = None,
 ) -> LiveStats:
     """Live view until `frames` frames, Ctrl-C or `stop()`; returns what it measured."""
-    from mca.capture.profiles import DEFAULT_PROFILE, load_profile
+    from mca.devices.profiles import DEFAULT_PROFILE, load_profile
 
     profile = load_profile(profile_name or DEFAULT_PROFILE)
     recorder = LiveRecorder(record, serve)
@@ -162,37 +162,3 @@ def run_live(
     stats.frames_per_s = stats.frames / elapsed if elapsed > 0 else 0.0
     stats.preview_ms_median = statistics.median(stats.preview_ms) if stats.preview_ms else 0.0
     return stats
-
-
-def scene_live_view_source(
-    profile_name: str = "paper-70d", scene: str = "paper-a", size_px: tuple[int, int] = (960, 540)
-) -> Callable[[int], bytes]:
-    """Live-view JPEGs of the simulated 70D: the MCA simulator's rendering of `scene` at live-view size.
-
-    Rendered once, on the first frame asked for (the 70D's live view is 960 x 540; the 3:2 rendering is
-    cropped to 16:9 in the middle), then served for every frame.
-    """
-    cache: dict[str, bytes] = {}
-
-    def frame(index: int) -> bytes:
-        if "jpeg" not in cache:
-            from mca.capture.profiles import load_profile
-            from mca.capture.recording import to_srgb8
-            from mca.capture.simulated_shots import render_scene
-
-            profile = load_profile(profile_name)
-            width, height = size_px
-            scale = 2.0 * width / (profile.width_px or 5472)  # the planes come at half the sensor's resolution
-            capture = render_scene(scene, profile, size=min(1.0, scale), seed=1)
-            planes = capture.planes_linear
-            full_h = round(planes.shape[0] * width / planes.shape[1])
-            rgb = cv2.resize(planes, (width, full_h), interpolation=cv2.INTER_AREA)
-            top = max(0, (full_h - height) // 2)
-            rgb = to_srgb8(np.clip(rgb[top : top + height], 0.0, 1.0))
-            ok, encoded = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 85])
-            if not ok:
-                raise RuntimeError("could not encode the simulated live-view frame")
-            cache["jpeg"] = encoded.tobytes()
-        return cache["jpeg"]
-
-    return frame

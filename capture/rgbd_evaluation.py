@@ -109,7 +109,7 @@ class _Context:
         """The planes at processing resolution with the Bayer sample offsets removed (what the peers see)."""
         if self.aligned is None:
             from mca.capture.api import bayer_channel_offsets_px
-            from mca.processing.simulate import shift_image
+            from mca.devices.sim.render import shift_image
 
             planes = np.asarray(self.loaded.planes, np.float32)
             offsets = None
@@ -271,7 +271,7 @@ def evaluate_rgbd(
     failed; the others go on. `keep_outputs` keeps `mca process`'s output folders there (else a
     temporary folder is used and removed)."""
     from mca.capture.peer_bando import BandoGeometryError
-    from mca.capture.profiles import load_profile_file
+    from mca.devices.profiles import load_profile_file
 
     entries = find_renders(root)
     if only:

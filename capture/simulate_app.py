@@ -26,7 +26,7 @@ def parse_integers(text: str, what: str) -> tuple[int, ...]:
 
 def prepare_simulation(profile: str, out: str | Path, fmt: str = "tiff") -> tuple[CameraProfile, Path]:
     """The profile by name or path, the output folder (created) and a checked `fmt`; else a `SimulateError`."""
-    from mca.capture.profiles import load_profile
+    from mca.devices.profiles import load_profile
     from mca.processing.camera import ProfileError
 
     try:
@@ -74,8 +74,9 @@ def simulate_paper(
     """Render the paper scene `scene` (or `all`) at `size` into `out_dir` (truth in `out_dir/truth`).
 
     `on_start(number, total, name)` is called before each scene renders, `on_done` after it is written."""
-    from mca.capture.simulated_shots import SIZES, render_scene, write_capture
-    from mca.processing.scenes import scene_names
+    from mca.capture.simulated_shots import write_capture
+    from mca.devices.sim.scenes import scene_names
+    from mca.devices.sim.world import SIZES, render_scene
 
     names = scene_names() if scene == "all" else [scene]
     unknown = [n for n in names if n not in scene_names()]
@@ -161,8 +162,8 @@ def simulate_rgbd(
         resize_rgbd,
         write_rgbd_capture,
     )
-    from mca.processing.render_rgbd import DepthRange, Realism
-    from mca.processing.simulate import SensorModel
+    from mca.devices.sim.render import SensorModel
+    from mca.devices.sim.render_rgbd import DepthRange, Realism
 
     _needs_lens(camera_profile)
     assert camera_profile.lens is not None

@@ -1,8 +1,8 @@
-"""Simulated photographs: render a scene through a profile's optics, package it as a CR2 or TIFF, write its truth files.
+"""Simulated photographs on disk: `mca simulate`'s folders of captures and their truth files.
 
-The simulated camera and the calibration sweep call `render_scene` and `capture_cr2_bytes`;
-`mca simulate` calls `write_capture` (paper scenes) and `render_rgbd_capture`/`write_rgbd_capture`/
-`render_rgbd_tree` (real photographs with known depth, `processing.render_rgbd`). Ground truth
+The simulated world itself (scenes, textures, the renderers, the CR2 writer, the simulated EOS 70D and
+rail) lives in `devices/sim/`; this module writes what it renders. `mca simulate` calls `write_capture` (paper scenes) and `render_rgbd_capture`/`write_rgbd_capture`/
+`render_rgbd_tree` (real photographs with known depth, `devices.sim.render_rgbd`). Ground truth
 goes into a `truth/` subfolder beside the captures. Files are written atomically (temporary name in the
 destination folder, then `os.replace`).
 """
@@ -11,100 +11,46 @@ from __future__ import annotations
 
 import io
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from mca.devices.sim.cr2 import Cr2Metadata, cr2_bytes
+from mca.devices.sim.world import SimulatedCapture, capture_cr2_bytes
 from mca.processing.camera import CameraProfile
-from mca.processing.scenes import paper_scene
-from mca.processing.simulate import Scene, SensorModel, SimulationOptics, render
 
-# Render sizes: the fraction of the profile's image size (pixel pitch scales to match).
-SIZES: dict[str, float] = {"full": 1.0, "small": 0.25}
 TRUTH_DIR = "truth"  # ground truth lives in this subfolder of a render folder, where `mca process DIR` never looks
 
 
-@dataclass
-class SimulatedCapture:
-    """One simulated photograph and its ground truth (see `processing.simulate.Rendering`)."""
-
-    scene: str
-    mosaic: np.ndarray  # (H, W) uint16 RGGB, black level included
-    planes_linear: np.ndarray  # (H/2, W/2, 3) float32, noise-free, (value - black) / (white - black)
-    truth: dict[str, Any]
-    depth_mm: np.ndarray  # (H, W) float32 distance of the front-most surface
-    labels: np.ndarray  # (H, W) uint16 object ids, 0 = background
-    sensor: SensorModel
-    optics: SimulationOptics
-
-
-def size_scale(size: str | float) -> float:
-    """The scale of a named size ("full", "small") or a number in (0, 1]."""
-    if isinstance(size, str):
-        if size not in SIZES:
-            raise ValueError(f"unknown size '{size}'; choose one of {', '.join(SIZES)} or a scale in (0, 1]")
-        return SIZES[size]
-    return float(size)
-
-
-def render_scene(
-    scene: str | Scene,
-    profile: CameraProfile,
+def write_cr2(
+    path: str | os.PathLike[str],
+    mosaic: np.ndarray,
     *,
-    size: str | float = "full",
-    seed: int | None = 0,
-    optics: SimulationOptics | None = None,
-    sensor: SensorModel | None = None,
-    cosited: bool = False,
-) -> SimulatedCapture:
-    """Render a named paper scene ("paper-a".."paper-g") or a `Scene` as the profile's camera would take it.
+    black_level: int = 2048,
+    white_level: int = 15000,
+    metadata: Cr2Metadata | None = None,
+    bits_per_sample: int = 14,
+    preview: bool = True,
+) -> Path:
+    """Write `mosaic` (H, W) uint16 RGGB as a Canon CR2 at `path`, atomically; returns the path.
 
-    `optics` overrides the profile's nominal optics (e.g. `SimulationOptics.from_profile(p, s).perturbed(...)`
-    for a lens that deviates from its profile); `size` is then ignored.
+    The file appears under its final name only once complete (written to a
+    temporary name in the same folder, then renamed).
     """
-    used_optics = optics if optics is not None else SimulationOptics.from_profile(profile, size_scale(size))
-    used_sensor = sensor if sensor is not None else SensorModel()
-    if isinstance(scene, str):
-        scene = paper_scene(scene, used_optics.focus_distance_mm)
-    rendering = render(scene, used_optics, used_sensor, seed=seed, cosited=cosited)
-    truth = {
-        "scene": rendering.truth["scene"],
-        "profile": profile.name,
-        "scale": used_optics.height_px / profile.height_px if profile.height_px else None,
-    }
-    truth.update({k: v for k, v in rendering.truth.items() if k not in truth})
-    return SimulatedCapture(
-        scene=scene.name,
-        mosaic=rendering.mosaic,
-        planes_linear=rendering.planes_linear,
-        truth=truth,
-        depth_mm=rendering.depth_mm,
-        labels=rendering.labels,
-        sensor=used_sensor,
-        optics=used_optics,
-    )
+    from mca.capture.outputs import write_bytes_atomic
 
-
-def capture_cr2_bytes(capture: SimulatedCapture, profile: CameraProfile) -> bytes:
-    """The simulated photograph as the bytes of a Canon CR2 (what the simulated EOS hands over PTP)."""
-    from mca.capture.cr2 import Cr2Metadata, cr2_bytes
-
-    lens = profile.lens
-    metadata = Cr2Metadata(
-        model=profile.model,
-        iso=int(round(capture.sensor.iso)),
-        f_number=float(lens.f_number) if lens is not None and lens.f_number else 1.8,
-        focal_length_mm=capture.optics.focal_length_mm,
-        focus_distance_m=capture.optics.focus_distance_mm / 1000.0,
-    )
-    return cr2_bytes(
-        capture.mosaic,
-        black_level=capture.sensor.black_level,
-        white_level=capture.sensor.white_level,
+    data = cr2_bytes(
+        mosaic,
+        black_level=black_level,
+        white_level=white_level,
         metadata=metadata,
+        bits_per_sample=bits_per_sample,
+        preview=preview,
     )
+    return write_bytes_atomic(Path(path), data)
 
 
 def truth_json(truth: dict[str, Any]) -> str:
@@ -361,7 +307,7 @@ def render_rgbd_capture(
     behind the focus plane), as a 16-bit linear TIFF ("tiff") or a CR2 ("cr2")."""
     import time
 
-    from mca.processing.render_rgbd import DepthRange, Realism, render_rgbd, rgbd_optics
+    from mca.devices.sim.render_rgbd import DepthRange, Realism, render_rgbd, rgbd_optics
 
     if fmt not in RGBD_FORMATS:
         raise ValueError(f"format must be one of {', '.join(RGBD_FORMATS)}, got {fmt!r}")
@@ -386,7 +332,7 @@ def render_rgbd_capture(
     )
     sensor = realism.sensor
     if fmt == "cr2":
-        from mca.capture.cr2 import Cr2Metadata, cr2_bytes
+        from mca.devices.sim.cr2 import Cr2Metadata, cr2_bytes
 
         metadata = Cr2Metadata(
             model=profile.model,
@@ -400,7 +346,7 @@ def render_rgbd_capture(
         )
         suffix = ".CR2"
     else:
-        from mca.processing.render_rgbd import dn_to_linear16
+        from mca.devices.sim.render_rgbd import dn_to_linear16
 
         data = linear_tiff_bytes(dn_to_linear16(rendering.image_dn, sensor), profile.model)
         suffix = ".tiff"
@@ -514,7 +460,7 @@ def render_rgbd_tree(
     """
     import time
 
-    from mca.processing.render_rgbd import draw_scene_settings
+    from mca.devices.sim.render_rgbd import draw_scene_settings
 
     outcomes = []
     folders = find_rgbd_scenes(tree)

@@ -32,8 +32,7 @@ from typing import Any
 from mca.capture.catalog import Catalog
 from mca.capture.file_names import FilenamePattern
 from mca.capture.hooks import HookScript
-from mca.devices import cameras
-from mca.devices.cameras import CameraFactory, SimRig
+from mca.devices.cameras import CameraFactory
 from mca.devices.ptp.camera import (
     MAX_OBJECT_BYTES,
     Camera,
@@ -62,34 +61,6 @@ class TetherError(TransportError):
 
     A `TransportError`, so callers that stop on link failures (the calibration sweep) stop on these too.
     """
-
-
-def default_sim_frame_source(size: str | float | None = None, profile_name: str = "paper-70d") -> Callable[[int], Any]:
-    """The frame source of `--camera sim`: what the simulated EOS 70D "photographs" (index -> (name, bytes)).
-
-    Shot N is the MCA simulator's rendering of the paper's Fig. 4 scene number N (paper-a ... paper-g,
-    cycling), written as a Canon EOS 70D CR2, deterministic for a given index. `size` is "full"
-    (5472 x 3648, the default), "small" or a scale in (0, 1]; the environment variable
-    `MCA_SIM_SIZE` sets it for a whole session (the tests use "small").
-    """
-    from mca.capture.profiles import load_profile
-    from mca.capture.simulated_shots import capture_cr2_bytes, render_scene
-    from mca.processing.scenes import scene_names
-
-    chosen_size = size if size is not None else os.environ.get("MCA_SIM_SIZE", "full")
-    try:
-        chosen_size = float(chosen_size)
-    except (TypeError, ValueError):
-        pass
-    profile = load_profile(profile_name)
-    scenes = scene_names()
-
-    def frame(index: int) -> tuple[str, bytes]:
-        scene = scenes[(index - 1) % len(scenes)]
-        capture = render_scene(scene, profile, size=chosen_size, seed=index)
-        return f"IMG_{index:04d}.CR2", capture_cr2_bytes(capture, profile)
-
-    return frame
 
 
 # -- Ctrl-C between two writes that belong together ------------------------
@@ -162,48 +133,6 @@ def _safe_target(out_dir: Path, name: str) -> Path:
     if target.parent != out_dir.resolve():
         raise ValueError(f"refusing to write {name!r} outside {out_dir}")
     return target
-
-
-# -- opening cameras --------------------------------------------------------
-# The spec parser and the simulated rig live in devices/cameras.py (`open_camera`, beside `open_rail`);
-# the application adds what the simulated EOS 70D photographs: the MCA simulator's scenes.
-
-
-def make_sim_rig(
-    frame_source: Callable[[int], Any] | None = None,
-    *,
-    faults: Any = None,
-    pace_bytes_per_s: float | None = None,
-    scenario: str | None = None,
-    live_view_source: Callable[[int], bytes] | None = None,
-) -> SimRig:
-    """The simulated EOS 70D on a simulated USB bus, photographing the paper's scenes (`default_sim_frame_source`)
-    and showing a rendered scene in live view; `scenario` names a fault scenario (`faults.SCENARIOS`)."""
-    if live_view_source is None:
-        from mca.capture.live import scene_live_view_source
-
-        live_view_source = scene_live_view_source()  # rendered on the first live-view frame asked for
-    return cameras.make_sim_rig(
-        frame_source or default_sim_frame_source(),
-        faults=faults,
-        pace_bytes_per_s=pace_bytes_per_s,
-        scenario=scenario,
-        live_view_source=live_view_source,
-    )
-
-
-def camera_factory(
-    spec: str,
-    *,
-    rig: SimRig | None = None,
-    timeout_s: float | None = None,
-    policy: PtpPolicy | None = None,
-    traffic_log: Callable[[str], None] | None = None,
-) -> CameraFactory:
-    """`devices.cameras.open_camera`, with `sim` photographing the paper's scenes (this module's `make_sim_rig`)."""
-    if cameras.is_sim(spec) and rig is None:
-        rig = make_sim_rig(scenario=spec.partition(":")[2] or None)
-    return cameras.open_camera(spec, rig=rig, timeout_s=timeout_s, policy=policy, traffic_log=traffic_log)
 
 
 # -- the session ------------------------------------------------------------
@@ -642,7 +571,7 @@ class TetherSession:
     def _process(self, shot_id: int, path: Path) -> ShotResult:
         try:
             from mca.capture import pipeline_app
-            from mca.capture.profiles import DEFAULT_PROFILE, load_profile
+            from mca.devices.profiles import DEFAULT_PROFILE, load_profile
         except ImportError as exc:
             msg = f"not processed: the processing pipeline is not available ({exc})"
             self.catalog.note(shot_id, msg)

@@ -271,7 +271,8 @@ def capture_json(session: Any, interrupted: bool) -> str:
 def demo_camera(spec: str, size: str = "full") -> tuple[Callable[[], Any], str]:
     """The camera factory of `mca demo` and what it is: `auto` is a USB camera if one is found, else the simulated
     EOS 70D photographing the paper's Fig. 4 scenes at `size` (full, small, or a scale)."""
-    from mca.capture.tether import camera_factory, default_sim_frame_source, make_sim_rig
+    from mca.devices.cameras import make_sim_rig, open_camera
+    from mca.devices.sim.world import scene_frame_source
 
     if spec == "auto":
         try:
@@ -281,12 +282,12 @@ def demo_camera(spec: str, size: str = "full") -> tuple[Callable[[], Any], str]:
         except Exception:
             spec = "sim"
     if spec != "sim":
-        return camera_factory(spec), f"camera: {spec}"
+        return open_camera(spec), f"camera: {spec}"
     try:
         size_value: str | float = float(size)
     except ValueError:
         size_value = size
-    factory = camera_factory("sim", rig=make_sim_rig(default_sim_frame_source(size_value)))
+    factory = open_camera("sim", rig=make_sim_rig(scene_frame_source(size_value)))
     return factory, f"camera: simulated Canon EOS 70D ({size} frames of the paper's Fig. 4 scenes)"
 
 

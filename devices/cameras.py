@@ -41,15 +41,21 @@ def make_sim_rig(
 ) -> SimRig:
     """The simulated EOS 70D on a simulated USB bus; `scenario` names a fault scenario (`faults.SCENARIOS`).
 
-    Without `frame_source` / `live_view_source` the simulated body uses its own (`sim_eos70d.responder`);
-    the application hands it rendered MCA scenes (`capture.tether.make_sim_rig`).
+    Without `frame_source` / `live_view_source` the simulated body photographs the simulated world: the MCA
+    simulator's rendering of the paper's scenes (`devices.sim.world.scene_frame_source`, rendered when a shot
+    is taken, at `MCA_SIM_SIZE`) and one rendered scene in live view (`scene_live_view_source`).
     """
-    from mca.devices.sim_eos70d.faults import scenario as named_scenario
-    from mca.devices.sim_eos70d.responder import SimEos70D
-    from mca.devices.sim_eos70d.usb_backend import SimUsbBackend
+    from mca.devices.sim import world
+    from mca.devices.sim.eos70d.faults import scenario as named_scenario
+    from mca.devices.sim.eos70d.responder import SimEos70D
+    from mca.devices.sim.eos70d.usb_backend import SimUsbBackend
 
     chosen = named_scenario(scenario or "none")
-    sim = SimEos70D(frame_source, behaviour=chosen.behaviour, live_view_source=live_view_source)
+    sim = SimEos70D(
+        frame_source or world.scene_frame_source(),
+        behaviour=chosen.behaviour,
+        live_view_source=live_view_source or world.scene_live_view_source(),
+    )
     plan = faults if faults is not None else chosen.faults
     return SimRig(sim, SimUsbBackend(sim, faults=plan, pace_bytes_per_s=pace_bytes_per_s), chosen.name)
 
@@ -77,7 +83,8 @@ def open_camera(
 ) -> CameraFactory:
     """A function that opens the camera named by `auto`, `sim[:SCENARIO]`, `usb:BUS:ADDR` or `ptpip:HOST[:PORT]`.
 
-    `rig` is the simulated camera `sim` opens (default: a new one, `make_sim_rig(scenario=...)`);
+    `rig` is the simulated camera `sim` opens (default: a new one photographing the simulated world,
+    `make_sim_rig(scenario=...)`);
     `timeout_s` overrides the policy's transaction timeout (tests shorten it); `traffic_log(line)` receives
     every PTP transaction and event of every connection it opens (`devices.ptp.traffic_log`). A spec that
     names no camera is a `ValueError` that lists the accepted forms.

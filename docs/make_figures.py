@@ -69,7 +69,7 @@ def main() -> None:
     args = parser.parse_args()
 
     from mca.capture.peer_bando import find_bando, run_bando
-    from mca.capture.profiles import load_profile
+    from mca.devices.profiles import load_profile
     from mca.processing.colour import srgb_decode
     from mca.processing.pipeline import run_pipeline
 

@@ -131,9 +131,9 @@ def main() -> None:
     from typer.testing import CliRunner
 
     from mca.capture.cli import app
-    from mca.capture.profiles import load_profile
     from mca.capture.raw import read_raw
-    from mca.capture.simulated_shots import capture_cr2_bytes, render_scene
+    from mca.devices.profiles import load_profile
+    from mca.devices.sim.world import capture_cr2_bytes, render_scene
 
     profile = load_profile("paper-70d")
     capture = render_scene(args.scene, profile, size=args.size)

@@ -32,7 +32,7 @@ _EXPORTS = {
     "read_raw": "mca.capture.raw",
     "RawFrame": "mca.capture.raw",
     "RawReadError": "mca.capture.raw",
-    "load_profile": "mca.capture.profiles",
+    "load_profile": "mca.devices.profiles",
     "CameraProfile": "mca.processing.camera",
     "DepthResult": "mca.processing.result",
     "CameraColour": "mca.processing.colour",
@@ -55,8 +55,8 @@ __all__ = [
 
 if TYPE_CHECKING:
     from mca.capture.api import depth_from_file, depth_from_frame
-    from mca.capture.profiles import load_profile
     from mca.capture.raw import RawFrame, RawReadError, read_raw
+    from mca.devices.profiles import load_profile
     from mca.processing.camera import CameraProfile
     from mca.processing.colour import CameraColour
     from mca.processing.pinhole import PinholeCamera

@@ -33,11 +33,13 @@ running sums over a ring buffer of rows, so one candidate costs one pass over th
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numba as nb
 import numpy as np
 
 from mca.processing.camera import CHANNELS, FilterAperture
-from mca.processing.features import FeatureNoise
+from mca.processing.features import FeatureNoise, feature_bands, feature_noise
 
 
 def channel_shifts(aperture: FilterAperture) -> np.ndarray:
@@ -397,6 +399,23 @@ def _at_maps(
 def stack_bands(bands: list[np.ndarray]) -> np.ndarray:
     """Feature planes [(H, W, 3), ...] -> the (B, 3, H, W) float32 layout the kernels take."""
     return np.ascontiguousarray(np.stack([np.moveaxis(b, -1, 0) for b in bands]), dtype=np.float32)
+
+
+@dataclass(frozen=True)
+class CostInput:
+    """What the cost reads of one set of planes: their feature bands, stacked for the kernels, with their noise
+    model. Made once per capture (`cost_input`) and shared by every stage that reads the colour-alignment cost
+    of those planes (the dense search, the refinement, the texture evidence)."""
+
+    bands: list[np.ndarray]  # [(H, W, 3) float32, ...] as `features.feature_bands` makes them
+    stacked: np.ndarray  # (B, 3, H, W) float32, `stack_bands(bands)`
+    noise: FeatureNoise | None  # `features.feature_noise(planes, bands)`, None when no stage asks for it
+
+
+def cost_input(planes: np.ndarray, noise_model: bool = True) -> CostInput:
+    """The `CostInput` of (H, W, 3) linear planes; the noise model is measured only when `noise_model`."""
+    bands = feature_bands(planes)
+    return CostInput(bands, stack_bands(bands), feature_noise(planes, bands) if noise_model else None)
 
 
 SAMPLINGS = ("bspline", "bilinear")

@@ -24,8 +24,8 @@ import numba as nb
 import numpy as np
 
 from mca.processing.camera import FilterAperture
-from mca.processing.cost import cost_volume, stack_bands
-from mca.processing.features import display_gamma, feature_bands, feature_noise
+from mca.processing.cost import CostInput, cost_input, cost_volume
+from mca.processing.features import display_gamma
 from mca.processing.sgm import aggregate
 
 _PATHS = 8  # semi-global aggregation paths: an isolated jump costs about this many P2
@@ -65,12 +65,19 @@ def candidate_disparities(range_px: tuple[float, float], step_px: float) -> np.n
 
 
 def _volume_hwd(
-    planes: np.ndarray, aperture: FilterAperture, candidates: np.ndarray, params: DenseParams
+    planes: np.ndarray,
+    aperture: FilterAperture,
+    candidates: np.ndarray,
+    params: DenseParams,
+    given: CostInput | None = None,
 ) -> np.ndarray:
-    bands = feature_bands(planes)
-    noise = feature_noise(planes, bands) if params.noise_model else None
+    """The (D, H, W) cost volume of `planes`; `given` is their `CostInput` when the caller has it already."""
+    inputs = given if given is not None else cost_input(planes, params.noise_model)
+    if params.noise_model and inputs.noise is None:
+        raise ValueError("DenseParams.noise_model is set but the CostInput handed in carries no noise model")
+    noise = inputs.noise if params.noise_model else None
     return cost_volume(
-        stack_bands(bands), aperture, candidates, params.window_px, params.noise_floor, params.sampling, noise
+        inputs.stacked, aperture, candidates, params.window_px, params.noise_floor, params.sampling, noise
     )
 
 
@@ -144,14 +151,19 @@ def occupied_range(
 
 
 def estimate_dense(
-    planes: np.ndarray, aperture: FilterAperture, range_px: tuple[float, float], params: DenseParams = DenseParams()
+    planes: np.ndarray,
+    aperture: FilterAperture,
+    range_px: tuple[float, float],
+    params: DenseParams = DenseParams(),
+    inputs: CostInput | None = None,
 ) -> DenseDisparity:
-    """Dense disparity of (H, W, 3) linear colour planes over `range_px` (px of these planes)."""
+    """Dense disparity of (H, W, 3) linear colour planes over `range_px` (px of these planes); `inputs` is the
+    planes' `cost.cost_input` when the caller has made it already (it then is not made again)."""
     planes = np.ascontiguousarray(planes, dtype=np.float32)
     h, w = planes.shape[:2]
     search = occupied_range(planes, aperture, range_px, params) if params.narrow_range else range_px
     candidates = candidate_disparities(search, params.step_px)
-    volume = _volume_hwd(planes, aperture, candidates, params)
+    volume = _volume_hwd(planes, aperture, candidates, params, inputs)
     if params.coarse_weight > 0 and min(h, w) >= 32:
         half = cv2.pyrDown(planes)
         coarse = _volume_hwd(half, aperture, candidates / 2.0, params)

@@ -33,11 +33,11 @@ import numpy as np
 
 from mca.processing.boundaries import BoundaryParams, snap_boundaries
 from mca.processing.camera import FilterAperture
-from mca.processing.cost import stack_bands
+from mca.processing.cost import CostInput, cost_input
 from mca.processing.dense import DenseDisparity, DenseParams, estimate_dense
 from mca.processing.depth import depth_map_mm, region_depth
 from mca.processing.disparity import parallel_map, warp_channels
-from mca.processing.features import display_gamma, feature_bands, feature_noise, texture_energy
+from mca.processing.features import display_gamma, texture_energy
 from mca.processing.mpi import all_in_focus, multi_plane_images
 from mca.processing.optics import MCAOptics
 from mca.processing.refine import Refinement, RefineParams, refine_regions
@@ -242,6 +242,7 @@ class _Run:
     small: np.ndarray = field(init=False)  # the analysis grid
     factor: int = field(init=False)  # processing px per analysis px
     to_input: float = field(init=False)  # input px per analysis px
+    inputs: CostInput = field(init=False)  # the analysis grid's feature bands and noise, made once
     dense: DenseDisparity = field(init=False)
     # surfaces, sketch
     aligned: np.ndarray = field(init=False)
@@ -300,7 +301,9 @@ def _disparity(run: _Run) -> None:
         run.aperture, run.optics, (int(height * run.pixel_scale), int(width * run.pixel_scale))
     )
     range_an = (range_in[0] / run.to_input, range_in[1] / run.to_input)
-    run.dense = estimate_dense(run.small, run.aperture, range_an, run.params.dense)
+    refine = run.params.refine
+    run.inputs = cost_input(run.small, run.params.dense.noise_model or (refine is not None and refine.noise_model))
+    run.dense = estimate_dense(run.small, run.aperture, range_an, run.params.dense, run.inputs)
     low, high = run.dense.search_range_px
     run.recorder.record(
         "disparity",
@@ -313,7 +316,7 @@ def _disparity(run: _Run) -> None:
 
 def _surfaces(run: _Run) -> None:
     run.aligned = display_gamma(warp_channels(run.small, run.aperture, run.dense.disparity_px))
-    evidence = _evidence(run.small, run.dense, run.params.evidence)
+    evidence = _evidence(run.inputs, run.dense, run.params.evidence)
     run.surfaces = build_surfaces(run.aligned, run.dense.disparity_px, run.params.surfaces, evidence=evidence)
     run.recorder.record("surfaces", labels=run.surfaces.labels, count=run.surfaces.count)
 
@@ -337,7 +340,11 @@ def _refine_stage(run: _Run) -> None:
     if run.params.refine is None:
         run.refinement = _no_refinement(run.sketch, run.surface_disparity)
     else:
-        run.refinement = _refine(run.small, run.aperture, run.sketch.labels, run.surface_disparity, run.params.refine)
+        refine = run.params.refine
+        noise = run.inputs.noise if refine.noise_model else None
+        run.refinement = refine_regions(
+            run.inputs.stacked, run.aperture, run.sketch.labels, run.surface_disparity, refine, noise=noise
+        )
     run.sketch = _refined_sketch(run.sketch, run.refinement, run.params.sketch.slant_px)
     run.recorder.record(
         "refine",
@@ -414,14 +421,6 @@ _STAGES: tuple[tuple[str, Callable[[_Run], None]], ...] = (
 )
 
 
-def _refine(
-    planes: np.ndarray, aperture: FilterAperture, labels: np.ndarray, model: np.ndarray, params: RefineParams
-) -> Refinement:
-    bands = feature_bands(planes)
-    noise = feature_noise(planes, bands) if params.noise_model else None
-    return refine_regions(stack_bands(bands), aperture, labels, model, params, noise=noise)
-
-
 def _region_models(sketch: Sketch, refined: np.ndarray) -> dict[int, np.ndarray]:
     """Each region's disparity over the whole grid: its refined model inside, its plane outside."""
     h, w = sketch.labels.shape
@@ -434,14 +433,14 @@ def _region_models(sketch: Sketch, refined: np.ndarray) -> dict[int, np.ndarray]
     return models
 
 
-def _evidence(planes: np.ndarray, dense: DenseDisparity, kind: str) -> np.ndarray | None:
+def _evidence(inputs: CostInput, dense: DenseDisparity, kind: str) -> np.ndarray | None:
     """How much each pixel's dense disparity is worth: its texture relative to the image's median texture
     (saturating at 1), or the dense confidence."""
     if kind == "none":
         return None
     if kind == "confidence":
         return dense.confidence
-    energy = texture_energy(feature_bands(planes), 9)
+    energy = texture_energy(inputs.bands, 9)
     return np.clip(energy / (float(np.median(energy)) + 1e-9), 0.0, 1.0).astype(np.float32)
 
 

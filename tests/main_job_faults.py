@@ -183,13 +183,13 @@ class Checker:
         self.unlisted: list[str] = []  # exposures on the card that the catalog does not know
 
     def card_files(self) -> list[str]:
-        from mca.capture.tether import camera_factory
+        from mca.devices.cameras import open_camera
         from mca.devices.ptp.codes import ObjectFormat
 
         host, port = self.camera_address
         for attempt in range(20):
             try:
-                camera = camera_factory(f"ptpip:{host}:{port}", timeout_s=5.0)()
+                camera = open_camera(f"ptpip:{host}:{port}", timeout_s=5.0)()
                 break
             except Exception:
                 time.sleep(0.25 * (attempt + 1))

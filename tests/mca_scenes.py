@@ -1,6 +1,6 @@
 """Small MCA images made in the tests from first principles: each channel of a textured layer is displaced by
 d * s_c (s_c from the filter geometry) and the layers are composited back to front. Independent of the
-project's simulator (`processing.simulate`) and renderer (`processing.render_rgbd`)."""
+project's simulator (`devices.sim.render`) and renderer (`devices.sim.render_rgbd`)."""
 
 from __future__ import annotations
 

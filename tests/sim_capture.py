@@ -23,8 +23,8 @@ def make_capture(folder: Path, scene: str = "paper-g") -> ProcessedCapture:
     from typer.testing import CliRunner
 
     from mca.capture.cli import app
-    from mca.capture.profiles import load_profile
-    from mca.capture.simulated_shots import capture_cr2_bytes, render_scene
+    from mca.devices.profiles import load_profile
+    from mca.devices.sim.world import capture_cr2_bytes, render_scene
 
     profile = load_profile("paper-70d")
     folder.mkdir(parents=True, exist_ok=True)

@@ -12,15 +12,15 @@ import numpy as np
 import pytest
 import tifffile
 
-from mca.devices.sim_eos70d.responder import default_frame_source
+from mca.devices.sim.eos70d.responder import default_frame_source
 
 
 @pytest.fixture
 def fast_frames(monkeypatch: pytest.MonkeyPatch) -> None:
     """The simulated body "photographs" small deterministic files (the rendering is tested elsewhere)."""
-    import mca.capture.tether as tether
+    from mca.devices.sim import world
 
-    monkeypatch.setattr(tether, "default_sim_frame_source", lambda *a, **k: default_frame_source)
+    monkeypatch.setattr(world, "scene_frame_source", lambda *a, **k: default_frame_source)
 
 
 # --- simulate -------------------------------------------------------------------------------------------------------
@@ -39,8 +39,8 @@ def _two_plane_source(folder: Path, near_value: int = 40, far_value: int = 20) -
 
 
 def test_simulate_rgbd_writes_the_capture_with_the_depth_the_disparity_asks_for(tmp_path: Path) -> None:
-    from mca.capture.profiles import load_profile, load_profile_file
     from mca.capture.simulate_app import RgbdOptions, simulate_rgbd
+    from mca.devices.profiles import load_profile, load_profile_file
     from mca.processing.optics import MCAOptics
 
     image, disparity = _two_plane_source(tmp_path / "src")
@@ -70,8 +70,8 @@ def test_simulate_rgbd_writes_the_capture_with_the_depth_the_disparity_asks_for(
 
 
 def test_simulate_rgbd_rejects_bad_options_naming_them(tmp_path: Path) -> None:
-    from mca.capture.profiles import load_profile
     from mca.capture.simulate_app import RgbdOptions, SimulateError, crosstalk_matrix, simulate_rgbd
+    from mca.devices.profiles import load_profile
 
     image, disparity = _two_plane_source(tmp_path / "src")
     profile = load_profile("paper-70d")
@@ -107,8 +107,8 @@ def test_simulate_setup_and_paper_scene_errors(tmp_path: Path) -> None:
 
 
 def test_simulate_rgbd_tree_reports_each_scene_and_keeps_what_is_rendered(tmp_path: Path) -> None:
-    from mca.capture.profiles import load_profile
     from mca.capture.simulate_app import SimulateError, TreeOptions, simulate_rgbd_tree
+    from mca.devices.profiles import load_profile
 
     _two_plane_source(tmp_path / "tree" / "Planes")
     (tmp_path / "tree" / "Planes" / "SOURCE.txt").write_text("Disparity scale factor: 1\n")
@@ -130,8 +130,8 @@ def test_simulate_rgbd_tree_reports_each_scene_and_keeps_what_is_rendered(tmp_pa
 
 def test_evaluate_rgbd_folder_scores_a_tiny_render(tmp_path: Path) -> None:
     from mca.capture.evaluation_app import evaluate_rgbd_folder, format_rgbd, rgbd_document
-    from mca.capture.profiles import load_profile
     from mca.capture.simulate_app import TreeOptions, simulate_rgbd_tree
+    from mca.devices.profiles import load_profile
 
     _two_plane_source(tmp_path / "tree" / "Planes")
     (tmp_path / "tree" / "Planes" / "SOURCE.txt").write_text("Disparity scale factor: 1\n")
@@ -229,7 +229,8 @@ def test_set_config_values_writes_what_the_loader_reads_back(tmp_path: Path) -> 
 
 
 def test_convert_optics_round_trips_through_every_quantity() -> None:
-    from mca.capture.profiles import convert_optics, load_profile
+    from mca.capture.profile_app import convert_optics
+    from mca.devices.profiles import load_profile
     from mca.processing.optics import MCAOptics
 
     from_disparity = convert_optics("paper-70d", disparity_px=8.0)
@@ -247,7 +248,8 @@ def test_convert_optics_round_trips_through_every_quantity() -> None:
 
 
 def test_profiles_are_described_and_resolved() -> None:
-    from mca.capture.profiles import builtin_names, describe_profile, load_profile, profile_list_lines, resolve_profile
+    from mca.capture.profile_app import describe_profile, profile_list_lines, resolve_profile
+    from mca.devices.profiles import builtin_names, load_profile
 
     profile = load_profile("paper-70d")
     text = describe_profile("paper-70d")

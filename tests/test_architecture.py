@@ -1,8 +1,9 @@
 """The import arrows of docs/architecture.md, checked by parsing every module's imports (nothing is imported).
 
-capture -> processing and capture -> devices are the only arrows between the rooms; processing
-is pure (no I/O library); the PTP and GRBL codecs are pure; the real device stacks never import
-their simulated twins. A violation names the file, the line and the import.
+capture -> processing and capture -> devices are the arrows between the rooms, plus one from the
+simulated world (devices/sim, and the camera profiles it renders through) to the optics in processing;
+processing is pure (no I/O library); the PTP and GRBL codecs are pure; the real device stacks never
+import their simulated twins. A violation names the file, the line and the import.
 """
 
 from __future__ import annotations
@@ -111,8 +112,15 @@ def processing_violations(modules: list[Module]) -> list[str]:
     return violations(modules, ("mca.capture", "mca.devices"), IO_LIBRARIES)
 
 
+# The simulated world renders its photographs through the paper's optics, and a camera profile is the
+# `processing.camera.CameraProfile` it describes: these two may import processing; the real stacks may not.
+MAY_IMPORT_PROCESSING = ("devices/sim/", "devices/profiles/")
+
+
 def devices_violations(modules: list[Module]) -> list[str]:
-    return violations(modules, ("mca.capture", "mca.processing"), frozenset({"rerun", "typer", "rich", "rawpy"}))
+    bad = violations(modules, ("mca.capture",), frozenset({"rerun", "typer", "rich", "rawpy"}))
+    real = [m for m in modules if not m.path.startswith(MAY_IMPORT_PROCESSING)]
+    return sorted(set(bad) | set(violations(real, ("mca.processing",), frozenset())))
 
 
 def codec_violations(modules: list[Module]) -> list[str]:
@@ -122,7 +130,7 @@ def codec_violations(modules: list[Module]) -> list[str]:
 def twin_violations(modules: list[Module]) -> list[str]:
     """The real stacks (devices/ptp, devices/rail) must not import the simulated twins; `open_rail("sim")` in
     devices/rail/__init__.py starts the twin on request, as pyserial's `serial_for_url("loop://")` does."""
-    bad = violations(modules, ("mca.devices.sim_eos70d", "mca.devices.sim_grbl"), frozenset())
+    bad = violations(modules, ("mca.devices.sim",), frozenset())
     return [v for v in bad if not v.startswith("devices/rail/__init__.py")]
 
 
@@ -170,7 +178,27 @@ def test_processing_imports_neither_capture_nor_devices_nor_io_libraries() -> No
 
 def test_devices_imports_neither_capture_nor_processing() -> None:
     bad = devices_violations(room_modules("devices"))
-    assert not bad, "devices/ must not import the application or the algorithms:\n" + "\n".join(bad)
+    assert not bad, "devices/ must not import the application, nor the algorithms outside devices/sim:\n" + "\n".join(
+        bad
+    )
+
+
+def test_the_simulated_world_has_one_home() -> None:
+    """Scenes, textures, the renderers, the CR2 writer, the simulated EOS 70D and the simulated rail all live
+    in devices/sim; the rooms hold no other module of that name, and only devices/sim imports the renderer's
+    internals from within devices."""
+    world = {"render", "scenes", "textures", "render_rgbd", "cr2", "world", "eos70d", "grbl"}
+    found = {Path(m.path).parts[2].removesuffix(".py") for m in room_modules("devices/sim")}
+    assert world <= found, world - found
+    elsewhere = [
+        m.path
+        for room in ROOMS
+        for m in room_modules(room)
+        if not m.path.startswith(("devices/sim/", "capture/commands/"))  # `mca simulate` is a command's name
+        and Path(m.path).stem in {"simulate", "scenes", "textures", "render_rgbd", "cr2", "sim_grbl", "sim_eos70d"}
+    ]
+    assert not elsewhere, elsewhere
+    assert (ROOT / "devices/profiles/paper-70d.toml").is_file()
 
 
 def test_codecs_do_no_io() -> None:
@@ -212,12 +240,20 @@ PLANTS = [
     ("processing/sub/_planted.py", "from ...devices.ptp import camera", processing_violations, "processing"),
     ("devices/_planted.py", "from mca.capture.tether import camera_factory", devices_violations, "devices"),
     ("devices/ptp/_planted.py", "from mca.processing.optics import MCAOptics", devices_violations, "devices"),
+    ("devices/rail/_planted.py", "from mca.processing.camera import CameraProfile", devices_violations, "devices"),
+    ("devices/sim/_planted.py", "from mca.capture.raw import read_raw", devices_violations, "devices"),
     ("devices/ptp/codec.py", "import usb.core", codec_violations, None),
     (
         "devices/ptp/_planted.py",
-        "from mca.devices.sim_eos70d.responder import SimEos70D",
+        "from mca.devices.sim.eos70d.responder import SimEos70D",
         twin_violations,
         "devices/ptp",
+    ),
+    (
+        "devices/rail/_planted.py",
+        "from mca.devices.sim.world import scene_frame_source",
+        twin_violations,
+        "devices/rail",
     ),
 ]
 
@@ -251,7 +287,7 @@ COMMAND_IMPORTS_ALLOWED = frozenset({"typer", "mca"}) | frozenset(sys.stdlib_mod
 MOVED_FROM_COMMANDS = {
     "report_document": "mca.capture.batch",
     "stop_on_sigterm": "mca.capture.batch",
-    "resolve_profile": "mca.capture.profiles",
+    "resolve_profile": "mca.capture.profile_app",
     "table2_document": "mca.capture.evaluation_app",
     "cached_paper_scene": "mca.capture.evaluation_app",
     "evaluate_rgbd_folder": "mca.capture.evaluation_app",
@@ -266,7 +302,7 @@ MOVED_FROM_COMMANDS = {
     "simulate_rgbd_tree": "mca.capture.simulate_app",
     "viewer_command": "mca.capture.viewer",
     "has_display": "mca.capture.viewer",
-    "describe_profile": "mca.capture.profiles",
+    "describe_profile": "mca.capture.profile_app",
     "run_calibration": "mca.capture.calibration",
 }
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
 from mca.processing.pipeline import run_pipeline
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "bando2008"

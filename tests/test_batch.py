@@ -18,7 +18,7 @@ from typer.testing import CliRunner
 from mca.capture.batch import LineProgress, discover_inputs, run_batch
 from mca.capture.cli import app
 from mca.capture.pipeline_app import RESULT_NAME
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,7 @@ from test_process import fake_pipeline, make_png, make_tiff
 
 from mca.capture import batch
 from mca.capture.batch import BatchError, LineProgress, Task, discover, make_runner, print_summary, run_batch
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
 
 PROFILE = load_profile("paper-70d")
 

@@ -16,7 +16,7 @@ from test_process import fake_pipeline, make_png
 from mca.capture import batch
 from mca.capture.batch import BatchError, BatchReport, Task, make_runner, print_summary, run_batch
 from mca.capture.pipeline_app import FileOutcome
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
 
 PROFILE = load_profile("paper-70d")
 BROKEN_PNG = b"\x89PNG\r\n\x1a\n" + b"\0" * 20

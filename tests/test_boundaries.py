@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from mca_scenes import render_layers, texture
 
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
 from mca.processing.boundaries import BoundaryParams, snap_boundaries
 
 APERTURE = load_profile("paper-70d").aperture

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
 from mca.processing.boundaries import BoundaryParams, _appearance, _dilate, snap_boundaries
 
 APERTURE = load_profile("paper-70d").aperture

@@ -11,8 +11,8 @@ from typer.testing import CliRunner
 
 from mca.capture import calibration as cal
 from mca.capture.cli import app
-from mca.capture.profiles import load_profile, load_profile_file
-from mca.capture.tether import camera_factory, make_sim_rig
+from mca.devices.cameras import make_sim_rig, open_camera
+from mca.devices.profiles import load_profile, load_profile_file
 from mca.devices.rail import open_rail
 from mca.processing.calibration import (
     PARAMETERS,
@@ -34,9 +34,9 @@ def _nominal() -> LensModel:
 
 @pytest.mark.parametrize("distance_mm", [905.0, 1003.0, 1140.0])
 def test_target_disparity_matches_the_rendered_truth(distance_mm: float) -> None:
-    from mca.capture.simulated_shots import render_scene
-    from mca.processing.scenes import target_scene
-    from mca.processing.simulate import SimulationOptics
+    from mca.devices.sim.render import SimulationOptics
+    from mca.devices.sim.scenes import target_scene
+    from mca.devices.sim.world import render_scene
 
     lens = SimulationOptics.from_profile(PROFILE, 0.15).perturbed(baseline_factor=1.03)
     shot = render_scene(target_scene(distance_mm), PROFILE, optics=lens, seed=4)
@@ -94,7 +94,7 @@ def test_calibrated_profile_loads_and_keeps_the_fit(tmp_path: Path) -> None:
 
 def _bench(plan: cal.SweepPlan) -> tuple[cal.SimBench, object]:
     bench = cal.SimBench(PROFILE, plan, cal.SimDeviation(), scale=0.1)
-    return bench, camera_factory("sim", rig=make_sim_rig(bench.frame))
+    return bench, open_camera("sim", rig=make_sim_rig(bench.frame))
 
 
 def _open_sim_rail(bench: cal.SimBench):

@@ -14,15 +14,15 @@ from typer.testing import CliRunner
 
 from mca.capture.cli import app
 from mca.capture.file_names import FilenamePattern, FilenamePatternError
-from mca.devices.sim_eos70d.responder import default_frame_source
+from mca.devices.sim.eos70d.responder import default_frame_source
 
 
 @pytest.fixture(autouse=True)
 def fast_frames(monkeypatch: pytest.MonkeyPatch) -> None:
     """The simulated body "photographs" small deterministic files here (the rendering is tested elsewhere)."""
-    import mca.capture.tether as tether
+    from mca.devices.sim import world
 
-    monkeypatch.setattr(tether, "default_sim_frame_source", lambda *a, **k: default_frame_source)
+    monkeypatch.setattr(world, "scene_frame_source", lambda *a, **k: default_frame_source)
 
 
 @pytest.fixture(autouse=True)

@@ -9,7 +9,7 @@ from typer.testing import CliRunner
 
 from mca.capture.batch import run_batch
 from mca.capture.cli import app
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
 
 distributed = pytest.importorskip("distributed", reason="dask[distributed] is the 'cluster' extra")
 

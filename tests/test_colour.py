@@ -14,9 +14,10 @@ import rawpy
 from tools import require
 
 from mca.capture import outputs, raw
-from mca.capture.cr2 import Cr2Metadata, write_cr2
 from mca.capture.pipeline_app import process_file
-from mca.capture.profiles import load_profile
+from mca.capture.simulated_shots import write_cr2
+from mca.devices.profiles import load_profile
+from mca.devices.sim.cr2 import Cr2Metadata
 from mca.processing import colour
 from mca.processing.colour import CameraColour, camera_colour, camera_to_srgb_from_xyz
 

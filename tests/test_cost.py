@@ -8,7 +8,7 @@ import pytest
 import scipy.ndimage
 from mca_scenes import render_layers, texture
 
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
 from mca.processing.cost import channel_shifts, cost_at, cost_volume, stack_bands
 from mca.processing.features import feature_bands
 

@@ -14,7 +14,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from tools import require
 
-from mca.capture.cr2 import (
+from mca.capture.simulated_shots import write_cr2
+from mca.devices.sim.cr2 import (
     EOS_70D_ACTIVE_HEIGHT_PX,
     EOS_70D_ACTIVE_WIDTH_PX,
     Cr2Metadata,
@@ -22,7 +23,6 @@ from mca.capture.cr2 import (
     cr2_bytes,
     encode_lossless_jpeg,
     raw_frame_geometry,
-    write_cr2,
 )
 
 BLACK = 2048

@@ -16,8 +16,9 @@ import pytest
 import rawpy
 from PIL import Image
 
-from mca.capture import cr2
-from mca.capture.cr2 import Cr2Metadata, cr2_bytes, encode_lossless_jpeg, write_cr2
+from mca.capture.simulated_shots import write_cr2
+from mca.devices.sim import cr2
+from mca.devices.sim.cr2 import Cr2Metadata, cr2_bytes, encode_lossless_jpeg
 
 BLACK, WHITE = 2048, 15000
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from mca_scenes import render_layers, texture, two_boxes_scene
 
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
 from mca.processing.dense import DenseParams, candidate_disparities, estimate_dense, occupied_range
 
 APERTURE = load_profile("paper-70d").aperture

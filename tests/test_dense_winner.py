@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from mca_scenes import render_layers, texture
 
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
 from mca.processing.dense import _winner, candidate_disparities, estimate_dense
 
 

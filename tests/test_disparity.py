@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
 from mca.processing.disparity import DisparityParams, channel_shifts, estimate_disparity, shift_channels
 
 APERTURE = load_profile("paper-70d").aperture

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
 from mca.processing import disparity as dsp
 
 APERTURE = load_profile("paper-70d").aperture

@@ -6,12 +6,12 @@ import numpy as np
 from typer.testing import CliRunner
 
 from mca.capture.cli import app
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
+from mca.devices.sim.render import SensorModel, SimulationOptics, render
+from mca.devices.sim.scenes import paper_scene
 from mca.processing.evaluate import ObjectRow, SceneEvaluation, bayer_planes, evaluate_scene, format_table, summarise
 from mca.processing.peers import colour_line_wta, sgbm_disparity
 from mca.processing.pipeline import RGGB_HALF_RES_OFFSETS_PX, align_channel_samples, run_pipeline
-from mca.processing.scenes import paper_scene
-from mca.processing.simulate import SensorModel, SimulationOptics, render
 
 
 def test_rows_and_summary():

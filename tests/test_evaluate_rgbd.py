@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import pytest
 
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
 from mca.processing.evaluate import PixelMetrics, RgbdRow, depth_edge_band, pixel_metrics, summarise_rgbd
 
 PROFILE = load_profile("paper-70d")
@@ -93,7 +93,7 @@ def test_summary_takes_median_and_worst_per_figure() -> None:
 
 
 def _plane(distance_mm: float, width: int = 200, height: int = 150):
-    from mca.processing.render_rgbd import render_filter_images, rgbd_optics
+    from mca.devices.sim.render_rgbd import render_filter_images, rgbd_optics
 
     optics = rgbd_optics(PROFILE, width, height, 1000.0, 22.5)
     rng = np.random.default_rng(4)

@@ -9,7 +9,7 @@ The parsers and their documented errors:
 | EOS event lists | `events.parse_eos_events` | `ProtocolError` |
 | PTP/IP packets | `ptpip_packets.parse_packet_header`, `parse_init_command_request`, `parse_init_command_ack`, `parse_operation_request`, `parse_operation_response`, `parse_event_packet`, `parse_start_data` | `ProtocolError` |
 | CR2 / TIFF / PNG / JPEG / PPM files | `capture.raw.read_raw`, `capture.raw.image_size_px` | `RawReadError` (none for `image_size_px`) |
-| camera profiles | `capture.profiles.load_profile_file`, `processing.camera.profile_from_mapping` | `ProfileError` |
+| camera profiles | `devices.profiles.load_profile_file`, `processing.camera.profile_from_mapping` | `ProfileError` |
 | the config file | `capture.config.read_config_file` + `apply_file` | `ConfigError` |
 | the rail's serial line | `grbl_protocol.LineSplitter.feed`, `parse_line` | `GrblProtocolError` |
 
@@ -170,7 +170,7 @@ def _ptp_seeds() -> dict[str, list[bytes]]:
         pack_operation_response,
         pack_start_data,
     )
-    from mca.devices.sim_eos70d.responder import SimEos70D
+    from mca.devices.sim.eos70d.responder import SimEos70D
 
     sim = SimEos70D()
     guid = bytes(range(16))
@@ -307,7 +307,7 @@ def _image_seeds() -> dict[str, list[bytes]]:
     import cv2
     import tifffile
 
-    from mca.capture.cr2 import Cr2Metadata, cr2_bytes
+    from mca.devices.sim.cr2 import Cr2Metadata, cr2_bytes
 
     rng = np.random.default_rng(13)
     mosaic = rng.integers(2048, 15000, size=(32, 48), dtype=np.uint16)
@@ -451,7 +451,7 @@ def _text_mutation(draw: st.DrawFn, text: str) -> bytes:
 def _fuzz_profiles(data: st.DataObject, meter: Meter, folder: Path) -> None:
     import tomllib
 
-    from mca.capture.profiles import BUILTIN_DIR, load_profile_file
+    from mca.devices.profiles import BUILTIN_DIR, load_profile_file
     from mca.processing.camera import ProfileError, profile_from_mapping
 
     name = data.draw(st.sampled_from(["paper-70d.toml", "bando2008.toml"]))

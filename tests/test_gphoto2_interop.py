@@ -67,9 +67,9 @@ def _clean(run: subprocess.CompletedProcess) -> None:
 
 
 def _expected_first_shot() -> bytes:
-    from mca.capture.tether import default_sim_frame_source
+    from mca.devices.sim.world import scene_frame_source
 
-    produced = default_sim_frame_source()(1)
+    produced = scene_frame_source()(1)
     return produced[1] if isinstance(produced, tuple) else produced
 
 
@@ -77,12 +77,12 @@ def _check_with_libraw(path: Path) -> None:
     """What gphoto2 downloaded, decoded by LibRaw, is the mosaic the simulated 70D shot: size, crop and pixels.
 
     Shot 1 of the simulated camera is the simulator's rendering of scene paper-a with seed 1 (tether.
-    default_sim_frame_source); the mosaic is taken from the renderer itself, before any CR2 encoding.
+    scene_frame_source); the mosaic is taken from the renderer itself, before any CR2 encoding.
     """
     import rawpy
 
-    from mca.capture.profiles import load_profile
-    from mca.capture.simulated_shots import render_scene
+    from mca.devices.profiles import load_profile
+    from mca.devices.sim.world import render_scene
 
     shot = render_scene("paper-a", load_profile("paper-70d"), size=os.environ.get("MCA_SIM_SIZE", "full"), seed=1)
     with rawpy.imread(str(path)) as raw:

@@ -12,10 +12,10 @@ from typer.testing import CliRunner
 
 from mca.capture.cli import app
 from mca.capture.live import LiveError, decode_jpeg, run_live
-from mca.capture.profiles import load_profile
-from mca.capture.tether import camera_factory, make_sim_rig
+from mca.devices.cameras import make_sim_rig, open_camera
+from mca.devices.profiles import load_profile
 from mca.devices.ptp.codec import ProtocolError
-from mca.devices.sim_eos70d.responder import default_frame_source
+from mca.devices.sim.eos70d.responder import default_frame_source
 from mca.processing.live_preview import LivePreviewParams, disparity_colours, live_disparity
 
 
@@ -70,7 +70,7 @@ def test_a_flat_frame_has_low_confidence_and_bad_frames_are_refused() -> None:
 def test_live_view_from_the_simulated_70d_into_a_recording(tmp_path: Path) -> None:
     rig = make_sim_rig(default_frame_source)
     record = tmp_path / "live.rrd"
-    stats = run_live(camera_factory("sim", rig=rig), record=record, frames=4)
+    stats = run_live(open_camera("sim", rig=rig), record=record, frames=4)
     assert (stats.frames, stats.width_px, stats.height_px) == (4, 960, 540)  # the 70D's live-view size
     assert rig.camera.live_view_frames == 4 and rig.camera.value(0xD1B0) == 0  # output back to the camera
     assert record.stat().st_size > 10_000
@@ -80,8 +80,8 @@ def test_live_view_from_the_simulated_70d_into_a_recording(tmp_path: Path) -> No
 def test_live_view_on_a_body_without_it_is_a_clear_error(tmp_path: Path) -> None:
     from mca.devices.ptp.camera import Camera
     from mca.devices.ptp.transport_usb import UsbTransport, find_cameras
-    from mca.devices.sim_eos70d.responder import SimEos70D
-    from mca.devices.sim_eos70d.usb_backend import SimUsbBackend
+    from mca.devices.sim.eos70d.responder import SimEos70D
+    from mca.devices.sim.eos70d.usb_backend import SimUsbBackend
 
     backend = SimUsbBackend(SimEos70D(default_frame_source, eos=False))
     with pytest.raises(LiveError, match="live view"):
@@ -89,9 +89,9 @@ def test_live_view_on_a_body_without_it_is_a_clear_error(tmp_path: Path) -> None
 
 
 def test_capture_live_command(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import mca.capture.tether as tether
+    from mca.devices.sim import world
 
-    monkeypatch.setattr(tether, "default_sim_frame_source", lambda *a, **k: default_frame_source)
+    monkeypatch.setattr(world, "scene_frame_source", lambda *a, **k: default_frame_source)
     record = tmp_path / "live.rrd"
     result = CliRunner().invoke(app, ["capture", "--camera", "sim", "--live", "--frames", "3", "--record", str(record)])
     assert result.exit_code == 0, result.output

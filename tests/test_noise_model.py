@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from mca_scenes import render_layers, texture
 
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
 from mca.processing.cost import cost_volume, stack_bands
 from mca.processing.dense import DenseParams
 from mca.processing.features import feature_bands, feature_noise, log_compress

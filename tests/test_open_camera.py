@@ -1,7 +1,7 @@
 """`devices.cameras.open_camera(spec)`: cameras by name, the simulated EOS 70D through the same call as a real one.
 
-The application's `capture.tether.camera_factory` is `open_camera` with the simulated body photographing
-the paper's scenes; the accepted names and the errors for others are the same through both.
+The application opens every camera through it; `sim` is the simulated body photographing the simulated
+world (the paper's scenes, `devices.sim.world`).
 """
 
 from __future__ import annotations
@@ -10,7 +10,6 @@ import re
 
 import pytest
 
-from mca.capture.tether import camera_factory
 from mca.devices.cameras import SPECS, make_sim_rig, open_camera
 from mca.devices.ptp.transport import TransportError
 
@@ -43,8 +42,8 @@ def test_a_rig_handed_in_is_the_one_opened() -> None:
     assert open_camera("sim", rig=rig).rig is rig  # type: ignore[attr-defined]
 
 
-@pytest.mark.parametrize("opener", [open_camera, camera_factory], ids=["devices", "capture"])
-def test_names_that_are_no_camera_are_refused_with_the_accepted_forms(opener) -> None:
+def test_names_that_are_no_camera_are_refused_with_the_accepted_forms() -> None:
+    opener = open_camera
     with pytest.raises(ValueError, match=r"unknown camera 'canon'.*auto, sim, sim:SCENARIO, usb:BUS:ADDR or ptpip"):
         opener("canon")
     with pytest.raises(ValueError, match=re.escape("PTP/IP port must be a number, got 'x' in 'ptpip:127.0.0.1:x'")):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
 from mca.processing import optics
 from mca.processing.optics import MCAOptics
 

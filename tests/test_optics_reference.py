@@ -16,7 +16,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from mca.capture.profiles import load_profile, load_profile_file
+from mca.devices.profiles import load_profile, load_profile_file
 from mca.processing import optics
 from mca.processing.camera import ProfileError
 from mca.processing.depth import depth_map_mm, region_depth

@@ -13,7 +13,7 @@ from test_process import fake_pipeline, make_png
 
 from mca.capture.output_folders import STAGING_MARK
 from mca.capture.pipeline_app import RESULT_NAME, process_file
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
 
 WAIT_S = 30.0  # how long a pipeline waits for a file to appear (a loaded machine is slow; this is no timing test)
 
@@ -55,7 +55,7 @@ def reporting_pipeline(seen: dict, out_root: Path):
 
 @pytest.mark.parametrize("profile_name", ["paper-70d", "none"])
 def test_depth_maps_are_written_while_the_pipeline_runs_and_match_the_files_written_after(tmp_path, profile_name):
-    from mca.capture.profiles import resolve_profile
+    from mca.capture.profile_app import resolve_profile
 
     chosen = resolve_profile(profile_name)
     source = make_png(tmp_path / "a.png")

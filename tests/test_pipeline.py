@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
+from mca.devices.sim.render import SensorModel, SimulationOptics, render
+from mca.devices.sim.scenes import paper_scene, target_scene
 from mca.processing.evaluate import bayer_planes
 from mca.processing.mpi import composite
 from mca.processing.pipeline import (
@@ -14,8 +16,6 @@ from mca.processing.pipeline import (
     default_disparity_range_px,
     run_pipeline,
 )
-from mca.processing.scenes import paper_scene, target_scene
-from mca.processing.simulate import SensorModel, SimulationOptics, render
 
 
 class ListRecorder:
@@ -240,3 +240,41 @@ def test_region_boundaries_follow_the_objects_at_processing_resolution():
     )
     accuracy = _boundary_accuracy(result.labels, rendering.labels[::2, ::2])
     assert accuracy >= 0.62, accuracy  # 0.68 measured; the rest is the half-occluded strips (docs/pipeline.md)
+
+
+def test_the_feature_bands_and_noise_of_the_analysis_grid_are_made_once(monkeypatch):
+    """The dense search, the texture evidence and the refinement all read the analysis grid's feature bands and
+    noise model: one `cost.cost_input` per capture (the dense search's quarter- and half-size levels have their
+    own), and the result is the one the stages got when each made its own."""
+    import mca.processing.cost as cost
+
+    optics = SimulationOptics.from_profile(load_profile("paper-70d"), 0.2)
+    sensor = SensorModel()
+    rendering = render(paper_scene("paper-b", optics.focus_distance_mm), optics, sensor, seed=5)
+    planes = bayer_planes(rendering.mosaic, sensor.black_level, sensor.white_level)
+    shapes, noisy = [], []
+    real_bands, real_noise = cost.feature_bands, cost.feature_noise
+
+    def counting_bands(p, *a, **k):
+        shapes.append(p.shape[:2])
+        return real_bands(p, *a, **k)
+
+    def counting_noise(p, *a, **k):
+        noisy.append(p.shape[:2])
+        return real_noise(p, *a, **k)
+
+    monkeypatch.setattr(cost, "feature_bands", counting_bands)
+    monkeypatch.setattr(cost, "feature_noise", counting_noise)
+    recorder = ListRecorder()
+    result = run_pipeline(
+        planes,
+        optics.aperture,
+        optics.mca,
+        pixel_scale=2.0,
+        channel_offsets_px=RGGB_HALF_RES_OFFSETS_PX,
+        recorder=recorder,
+    )
+    grid = recorder.stages["surfaces"]["labels"].shape
+    assert shapes.count(grid) == 1 and noisy.count(grid) == 1, (grid, shapes)
+    assert len(shapes) == len(set(shapes)) == 3  # the grid, its half for the coarse cost, its quarter for the range
+    assert np.isfinite(result.disparity_px).all()

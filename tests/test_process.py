@@ -15,9 +15,10 @@ from typer.testing import CliRunner
 from mca.capture import outputs
 from mca.capture.batch import run_batch
 from mca.capture.cli import app
-from mca.capture.cr2 import Cr2Metadata, write_cr2
 from mca.capture.pipeline_app import RESULT_NAME, process_file
-from mca.capture.profiles import load_profile
+from mca.capture.simulated_shots import write_cr2
+from mca.devices.profiles import load_profile
+from mca.devices.sim.cr2 import Cr2Metadata
 from mca.processing.optics import MCAOptics
 from mca.processing.result import DepthResult, MultiPlaneImage, Region
 
@@ -349,7 +350,7 @@ import sys, time
 sys.path.insert(0, sys.argv[3])
 from pathlib import Path
 from mca.capture.batch import run_batch
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
 from mca.processing.optics import MCAOptics
 from test_process import fake_pipeline
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from mca.capture.profiles import builtin_names, load_profile, load_profile_file
+from mca.devices.profiles import builtin_names, load_profile, load_profile_file
 from mca.processing.camera import ProfileError
 
 PAPER = """

@@ -89,7 +89,7 @@ from mca.devices.ptp.ptpip_packets import (
     parse_packet_header,
     parse_start_data,
 )
-from mca.devices.sim_eos70d.responder import SimEos70D
+from mca.devices.sim.eos70d.responder import SimEos70D
 
 ROUND_TRIP = settings(max_examples=200, deadline=None, suppress_health_check=list(HealthCheck), database=None)
 u32s = st.integers(0, 0xFFFFFFFF)

@@ -36,7 +36,7 @@ from mca.devices.ptp.replay import (
     printed_object_infos,
 )
 from mca.devices.ptp.transport_usb import UsbTransport, find_cameras
-from mca.devices.sim_eos70d.usb_backend import SimUsbBackend
+from mca.devices.sim.eos70d.usb_backend import SimUsbBackend
 
 TRACES = Path(__file__).resolve().parents[1] / ".." / "shared" / "reference" / "eos-traces"
 if not TRACES.is_dir():

@@ -16,8 +16,8 @@ from typer.testing import CliRunner
 from mca.capture.batch import run_batch, worker_threads
 from mca.capture.cli import app
 from mca.capture.pipeline_app import RESULT_NAME, process_file, settings_key
-from mca.capture.profiles import load_profile
 from mca.capture.threads import threads_per_worker
+from mca.devices.profiles import load_profile
 from mca.processing.pipeline import PipelineParams
 
 SIM_SCALE = 0.1  # of the 70D's 5472 x 3648: 547 x 365 photosites, about a second through the pipeline
@@ -31,7 +31,7 @@ def profile():
 @pytest.fixture(scope="module")
 def small_cr2(tmp_path_factory) -> Path:
     """A small simulated CR2 (the paper's scene g) that the real pipeline processes in about a second."""
-    from mca.capture.simulated_shots import capture_cr2_bytes, render_scene
+    from mca.devices.sim.world import capture_cr2_bytes, render_scene
 
     profile = load_profile("paper-70d")
     path = tmp_path_factory.mktemp("quality") / "knife.CR2"

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from mca.devices.rail import GrblRail, RailCommandError, open_rail
-from mca.devices.sim_grbl import SimGrbl, SimGrblPty
+from mca.devices.sim.grbl import SimGrbl, SimGrblPty
 
 
 @pytest.fixture

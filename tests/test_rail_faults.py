@@ -15,7 +15,7 @@ from mca.devices.rail import (
     RailProtocolError,
     RailTimeout,
 )
-from mca.devices.sim_grbl import SimGrbl, SimGrblPty
+from mca.devices.sim.grbl import SimGrbl, SimGrblPty
 
 
 @pytest.fixture

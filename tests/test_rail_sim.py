@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from mca.devices.rail import grbl_protocol as gp
-from mca.devices.sim_grbl import SimGrbl
+from mca.devices.sim.grbl import SimGrbl
 
 
 class FakeClock:

@@ -13,8 +13,9 @@ import pytest
 import tifffile
 
 import mca.capture.raw as raw_module
-from mca.capture.cr2 import EOS_70D_ACTIVE_HEIGHT_PX, EOS_70D_ACTIVE_WIDTH_PX, Cr2Metadata, write_cr2
 from mca.capture.raw import RawFrame, RawReadError, UnknownBodyError, read_raw, require_known_body
+from mca.capture.simulated_shots import write_cr2
+from mca.devices.sim.cr2 import EOS_70D_ACTIVE_HEIGHT_PX, EOS_70D_ACTIVE_WIDTH_PX, Cr2Metadata
 
 BLACK = 2048
 WHITE = 15000

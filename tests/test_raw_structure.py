@@ -16,8 +16,9 @@ import pytest
 import tifffile
 
 from mca.capture import raw
-from mca.capture.cr2 import Cr2Metadata, write_cr2
 from mca.capture.raw import NotAPhotographError, RawReadError, read_raw
+from mca.capture.simulated_shots import write_cr2
+from mca.devices.sim.cr2 import Cr2Metadata
 
 # --------------------------------------------------------------------------- the TIFF directory parser vs tifffile
 

@@ -2,7 +2,7 @@
 
 Recordings are checked with `rerun rrd verify`, `rerun rrd print` (entity -> archetypes) and the
 SDK's reader `rerun.chunk.RrdReader` (image sizes, values); inputs are a small CR2 written by
-`capture.cr2.write_cr2` and a small PNG, both read by the real `capture.raw.read_raw`.
+`devices.sim.cr2.write_cr2` and a small PNG, both read by the real `capture.raw.read_raw`.
 """
 
 from __future__ import annotations
@@ -19,7 +19,6 @@ import numpy as np
 import pytest
 import rerun as rr
 
-from mca.capture.profiles import load_profile
 from mca.capture.recording import (
     RerunRecorder,
     child_environment,
@@ -32,6 +31,7 @@ from mca.capture.recording import (
     rerun_analytics_disabled,
     rerun_executable,
 )
+from mca.devices.profiles import load_profile
 from mca.processing.optics import MCAOptics
 from mca.processing.result import DepthResult, MultiPlaneImage, Region
 
@@ -125,7 +125,8 @@ def synthetic_result(height: int, width: int, optics: MCAOptics | None, pixel_sc
 
 
 def make_cr2(path: Path, height: int = 96, width: int = 144) -> Path:
-    from mca.capture.cr2 import Cr2Metadata, write_cr2
+    from mca.capture.simulated_shots import write_cr2
+    from mca.devices.sim.cr2 import Cr2Metadata
 
     rng = np.random.default_rng(1)
     mosaic = (2048 + rng.random((height, width)) * 10000).astype(np.uint16)

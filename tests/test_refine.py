@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from mca_scenes import render_layers, texture
 
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
 from mca.processing.cost import stack_bands
 from mca.processing.features import feature_bands
 from mca.processing.refine import RefineParams, refine_regions

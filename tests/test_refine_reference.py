@@ -122,7 +122,7 @@ def test_a_curved_region_gets_a_slope_only_from_six_cells(rows):
     slope). Two rows, ten cells: the correction has a slope, toward the truth's (0.01 - 0.004 = 0.006 px/px)."""
     from mca_scenes import render_layers, texture
 
-    from mca.capture.profiles import load_profile
+    from mca.devices.profiles import load_profile
     from mca.processing.cost import stack_bands
     from mca.processing.features import feature_bands
     from mca.processing.refine import RefineParams, refine_regions

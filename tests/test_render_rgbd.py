@@ -10,8 +10,9 @@ import cv2
 import numpy as np
 import pytest
 
-from mca.capture.profiles import load_profile
-from mca.processing.render_rgbd import (
+from mca.devices.profiles import load_profile
+from mca.devices.sim.render import SensorModel
+from mca.devices.sim.render_rgbd import (
     DepthRange,
     Realism,
     fill_from_farther_neighbour,
@@ -19,7 +20,6 @@ from mca.processing.render_rgbd import (
     render_rgbd,
     rgbd_optics,
 )
-from mca.processing.simulate import SensorModel
 
 PROFILE = load_profile("paper-70d")
 MIDDLEBURY = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "middlebury"
@@ -71,7 +71,7 @@ def _phase_shift(moved: np.ndarray, reference: np.ndarray, border: int = 40) -> 
 
 
 def test_the_phase_correlation_measures_a_known_shift() -> None:
-    from mca.processing.simulate import shift_image
+    from mca.devices.sim.render import shift_image
 
     grey = _texture(192, 256)
     for shift in ((0.74, 0.3), (-1.6, 2.2), (3.3, -0.45)):
@@ -211,7 +211,7 @@ def test_unknown_disparity_is_filled_from_the_farther_neighbour_on_its_row() -> 
 
 
 def test_vignetting_and_crosstalk_follow_their_definitions() -> None:
-    from mca.processing.render_rgbd import sensor_signal, vignetting_gain
+    from mca.devices.sim.render_rgbd import sensor_signal, vignetting_gain
 
     optics = _optics(100, 80)
     cos4 = vignetting_gain(Realism(vignetting="cos4"), optics)
@@ -245,7 +245,7 @@ def test_written_captures_are_read_with_the_rendered_pitch_and_orientation(tmp_p
     planes = loaded.planes
     assert planes[: 4 // int(loaded.pixel_scale), : 8 // int(loaded.pixel_scale)].mean() > 0.5  # the white corner
     assert planes[-10:, -10:].mean() < 0.5
-    from mca.capture.profiles import load_profile_file
+    from mca.devices.profiles import load_profile_file
 
     focused = load_profile_file(paths["profile"])
     assert focused.lens.focus_distance_mm == pytest.approx(truth["focus_distance_mm"], rel=1e-9)
@@ -275,8 +275,8 @@ def test_the_mosaic_samples_each_colour_at_its_own_bayer_site() -> None:
     disparity plus the sites' own offset, which the application's Bayer offsets (what `mca process` removes)
     account for exactly."""
     from mca.capture.api import bayer_channel_offsets_px
+    from mca.devices.sim.render_rgbd import expose_mosaic, sensor_signal
     from mca.processing.evaluate import bayer_planes
-    from mca.processing.render_rgbd import expose_mosaic, sensor_signal
 
     optics = _optics(320, 256)
     h, w = optics.height_px, optics.width_px

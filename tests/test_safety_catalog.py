@@ -16,7 +16,9 @@ from typer.testing import CliRunner
 
 from mca.capture.catalog import Catalog
 from mca.capture.cli import app
-from mca.capture.tether import TetherSession, camera_factory, default_sim_frame_source, make_sim_rig
+from mca.capture.tether import TetherSession
+from mca.devices.cameras import make_sim_rig, open_camera
+from mca.devices.sim.world import scene_frame_source
 
 FIRST_CATALOG_SCHEMA = """
 CREATE TABLE IF NOT EXISTS shots (
@@ -120,8 +122,8 @@ def test_a_catalog_of_a_newer_mca_is_refused(tmp_path):
 def test_a_shot_downloaded_but_not_processed_is_processed_by_the_next_run(tmp_path, monkeypatch, tiny_frames):
     """A run killed between download and processing leaves the shot 'downloaded'; the next --process run does it."""
     out = tmp_path / "shots"
-    rig = make_sim_rig(default_sim_frame_source())
-    session = TetherSession(camera_factory("sim", rig=rig), out)  # downloads only, as if killed before processing
+    rig = make_sim_rig(scene_frame_source())
+    session = TetherSession(open_camera("sim", rig=rig), out)  # downloads only, as if killed before processing
     session.connect()
     (first,) = session.capture(1)
     session.close()

@@ -26,7 +26,7 @@ from typer.testing import CliRunner
 from mca.capture.batch import run_batch
 from mca.capture.cli import app
 from mca.capture.pipeline_app import RESULT_NAME, process_file
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
 
 MCA = [sys.executable, "-m", "mca"]
 
@@ -161,7 +161,7 @@ BOUNDED_CHILD = textwrap.dedent(
     from pathlib import Path
     sys.path.insert(0, sys.argv[3])
     from mca.capture.pipeline_app import process_file
-    from mca.capture.profiles import load_profile
+    from mca.devices.profiles import load_profile
     from test_process import fake_pipeline
     profile = load_profile("paper-70d")
     with open("/proc/self/status") as status:

@@ -14,9 +14,9 @@ import pytest
 from typer.testing import CliRunner
 
 from mca.capture.cli import app
-from mca.capture.profiles import load_profile_file
+from mca.devices.profiles import load_profile_file
 from mca.devices.rail import GrblRail
-from mca.devices.sim_grbl import SimGrbl, SimGrblPty
+from mca.devices.sim.grbl import SimGrbl, SimGrblPty
 from mca.processing.camera import ProfileError
 
 PROFILE = """

@@ -22,7 +22,7 @@ from test_process import FULL_SET, fake_pipeline, files_under, make_png, make_ti
 from mca.capture import outputs
 from mca.capture.batch import run_batch
 from mca.capture.pipeline_app import RESULT_NAME, output_dir_for, process_file
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
 
 
 @pytest.fixture(scope="module")

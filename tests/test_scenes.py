@@ -6,9 +6,9 @@ import json
 
 import pytest
 
-from mca.capture.profiles import load_profile
-from mca.processing.scenes import TABLE1_INTER_OBJECT_DEPTH_MM, paper_scene, scene_names
-from mca.processing.simulate import SimulationOptics, scene_truth, truth_rasters
+from mca.devices.profiles import load_profile
+from mca.devices.sim.render import SimulationOptics, scene_truth, truth_rasters
+from mca.devices.sim.scenes import TABLE1_INTER_OBJECT_DEPTH_MM, paper_scene, scene_names
 
 PROFILE = load_profile("paper-70d")
 TINY = SimulationOptics.from_profile(PROFILE, 0.125)

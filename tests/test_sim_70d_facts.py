@@ -14,8 +14,8 @@ from mca.devices.ptp.camera import Camera
 from mca.devices.ptp.codes import EosProp
 from mca.devices.ptp.events import image_format_of
 from mca.devices.ptp.transport_usb import UsbTransport, find_cameras
-from mca.devices.sim_eos70d.responder import SimEos70D
-from mca.devices.sim_eos70d.usb_backend import SimUsbBackend
+from mca.devices.sim.eos70d.responder import SimEos70D
+from mca.devices.sim.eos70d.usb_backend import SimUsbBackend
 
 TRACES = Path("/work/shared/reference/eos-traces")
 for candidate in (Path(__file__).resolve().parents[2] / "shared" / "reference" / "eos-traces", TRACES):

@@ -10,10 +10,10 @@ from mca.devices.ptp.camera import Camera, ReleaseRefused
 from mca.devices.ptp.codes import Op, Resp
 from mca.devices.ptp.transport_ptpip import PtpIpTransport
 from mca.devices.ptp.transport_usb import UsbTransport, find_cameras
-from mca.devices.sim_eos70d.faults import FaultPlan
-from mca.devices.sim_eos70d.ptpip_server import PtpIpServer
-from mca.devices.sim_eos70d.responder import SimEos70D, deterministic_frame
-from mca.devices.sim_eos70d.usb_backend import SimUsbBackend
+from mca.devices.sim.eos70d.faults import FaultPlan
+from mca.devices.sim.eos70d.ptpip_server import PtpIpServer
+from mca.devices.sim.eos70d.responder import SimEos70D, deterministic_frame
+from mca.devices.sim.eos70d.usb_backend import SimUsbBackend
 
 
 def _open(backend: SimUsbBackend) -> Camera:
@@ -122,7 +122,7 @@ def test_ptpip_server_refuses_non_loopback_addresses() -> None:
 
 def test_the_eos_folder_listing_and_standard_property_descriptions() -> None:
     from mca.devices.ptp.datasets import parse_eos_folder_entries
-    from mca.devices.sim_eos70d.responder import SimBehaviour
+    from mca.devices.sim.eos70d.responder import SimBehaviour
 
     backend = SimUsbBackend(SimEos70D(behaviour=SimBehaviour(files_on_card=4)))
     with _open(backend) as cam:

@@ -14,8 +14,8 @@ import pytest
 from mca.devices.ptp.camera import Camera
 from mca.devices.ptp.transport import TransportError
 from mca.devices.ptp.transport_ptpip import PtpIpTransport
-from mca.devices.sim_eos70d.ptpip_server import PtpIpServer
-from mca.devices.sim_eos70d.responder import deterministic_frame
+from mca.devices.sim.eos70d.ptpip_server import PtpIpServer
+from mca.devices.sim.eos70d.responder import deterministic_frame
 
 
 def test_a_header_claiming_a_huge_packet_allocates_nothing_until_the_bytes_arrive() -> None:

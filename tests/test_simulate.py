@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from skimage.registration import phase_cross_correlation
 
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
+from mca.devices.sim.render import Layer, Scene, SensorModel, SimulationOptics, Slant, render
+from mca.devices.sim.scenes import rounded_rect, target_scene
+from mca.devices.sim.textures import Texture
 from mca.processing.optics import MCAOptics
-from mca.processing.scenes import rounded_rect, target_scene
-from mca.processing.simulate import Layer, Scene, SensorModel, SimulationOptics, Slant, render
-from mca.processing.textures import Texture
 
 PROFILE = load_profile("paper-70d")
 SMALL = SimulationOptics.from_profile(PROFILE, 0.25)  # 1368 x 912 mosaic, pitch 4x the 70D's
@@ -176,7 +176,8 @@ def test_truth_is_consistent_with_the_optics() -> None:
 
 def test_cr2_round_trip_returns_the_planes(tmp_path) -> None:
     from mca.capture.raw import read_raw
-    from mca.capture.simulated_shots import render_scene, write_capture
+    from mca.capture.simulated_shots import write_capture
+    from mca.devices.sim.world import render_scene
 
     capture = render_scene("paper-f", PROFILE, size=0.125, seed=1)
     paths = write_capture(capture, PROFILE, tmp_path)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from mca_scenes import render_layers, texture, two_boxes_scene
 
-from mca.capture.profiles import load_profile
+from mca.devices.profiles import load_profile
 from mca.processing.dense import DenseParams, estimate_dense
 from mca.processing.disparity import warp_channels
 from mca.processing.features import display_gamma

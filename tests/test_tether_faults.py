@@ -9,10 +9,11 @@ from pathlib import Path
 
 import pytest
 
-from mca.capture.tether import TetherSession, camera_factory, make_sim_rig, sanitize_filename
+from mca.capture.tether import TetherSession, sanitize_filename
+from mca.devices.cameras import make_sim_rig, open_camera
 from mca.devices.ptp.codes import Op
-from mca.devices.sim_eos70d.faults import SCENARIOS, FaultPlan, scenario
-from mca.devices.sim_eos70d.responder import default_frame_source
+from mca.devices.sim.eos70d.faults import SCENARIOS, FaultPlan, scenario
+from mca.devices.sim.eos70d.responder import default_frame_source
 
 #: Shots per scenario (the slow half press takes 6 s a shot).
 SHOTS = {"slow-half-press": 1}
@@ -20,7 +21,7 @@ SHOTS = {"slow-half-press": 1}
 
 def _run(tmp_path: Path, faults: FaultPlan, count: int = 3, frame_source=default_frame_source, timeout_s: float = 0.3):
     rig = make_sim_rig(frame_source, faults=faults)
-    session = TetherSession(camera_factory("sim", rig=rig, timeout_s=timeout_s), tmp_path)
+    session = TetherSession(open_camera("sim", rig=rig, timeout_s=timeout_s), tmp_path)
     session.connect()
     results = session.capture(count)
     assert [r.status for r in results] == ["downloaded"] * count
@@ -48,7 +49,7 @@ def test_every_fault_scenario_gives_one_exposure_per_requested_shot_and_loses_no
     shots = SHOTS.get(name, 3)
     rig = make_sim_rig(default_frame_source, scenario=name)
     sim = rig.camera
-    session = TetherSession(camera_factory("sim", rig=rig, timeout_s=chosen.host_timeout_s), tmp_path)
+    session = TetherSession(open_camera("sim", rig=rig, timeout_s=chosen.host_timeout_s), tmp_path)
     session.connect()
     results = session.capture(shots)
     sim.wait_idle()
@@ -109,7 +110,7 @@ def test_disconnect_reconnects_and_fetches_missing(tmp_path: Path) -> None:
 
 def test_delete_after_verify_empties_the_card(tmp_path: Path) -> None:
     rig = make_sim_rig(default_frame_source)
-    session = TetherSession(camera_factory("sim", rig=rig), tmp_path, delete_after_verify=True)
+    session = TetherSession(open_camera("sim", rig=rig), tmp_path, delete_after_verify=True)
     session.connect()
     session.capture(2)
     assert rig.camera.card_files() == {}
@@ -138,7 +139,7 @@ def test_sanitize_filename_rules() -> None:
 
 def test_tethered_mode_downloads_shutter_button_shots(tmp_path: Path) -> None:
     rig = make_sim_rig(default_frame_source)
-    session = TetherSession(camera_factory("sim", rig=rig), tmp_path)
+    session = TetherSession(open_camera("sim", rig=rig), tmp_path)
     session.connect()
     rig.camera.press_shutter_button()
     rig.camera.press_shutter_button()

@@ -13,15 +13,16 @@ from pathlib import Path
 
 import pytest
 
-from mca.capture.tether import TetherSession, camera_factory, make_sim_rig
+from mca.capture.tether import TetherSession
+from mca.devices.cameras import make_sim_rig, open_camera
 from mca.devices.ptp.camera import Camera, CaptureError, PtpError
 from mca.devices.ptp.codec import Container
 from mca.devices.ptp.codes import ContainerType, Op, Resp
 from mca.devices.ptp.properties import EOS_APERTURE, EOS_ISO, EOS_SHUTTER, spec_for
 from mca.devices.ptp.transport_usb import UsbTransport, find_cameras
-from mca.devices.sim_eos70d.faults import FaultPlan
-from mca.devices.sim_eos70d.responder import Reply, SimEos70D, default_frame_source
-from mca.devices.sim_eos70d.usb_backend import SimUsbBackend
+from mca.devices.sim.eos70d.faults import FaultPlan
+from mca.devices.sim.eos70d.responder import Reply, SimEos70D, default_frame_source
+from mca.devices.sim.eos70d.usb_backend import SimUsbBackend
 
 EVENT_TERMINATOR = struct.pack("<II", 8, 0)
 
@@ -77,7 +78,7 @@ def test_an_unanswered_event_poll_after_the_release_does_not_fire_the_shutter_ag
         return handle(cmd, data_out)
 
     _wrap(sim, hook)
-    session = TetherSession(camera_factory("sim", rig=rig, timeout_s=0.3), tmp_path)
+    session = TetherSession(open_camera("sim", rig=rig, timeout_s=0.3), tmp_path)
     session.connect()
     results = session.capture(2)
     session.close()
@@ -104,7 +105,7 @@ def test_timeouts_follow_libgphoto2() -> None:
 
 def test_a_half_press_slower_than_five_seconds_is_waited_for(tmp_path: Path) -> None:
     rig = make_sim_rig(default_frame_source, scenario="slow-half-press")
-    session = TetherSession(camera_factory("sim", rig=rig), tmp_path)
+    session = TetherSession(open_camera("sim", rig=rig), tmp_path)
     session.connect()
     results = session.capture(1)
     session.close()
@@ -115,7 +116,7 @@ def test_a_reply_that_comes_after_the_timeout_is_discarded_and_its_events_kept(t
     """The body answers a GetEvent 0.8 s late and ignores the host's cancel: the late reply arrives in the next
     transaction. The old host took the transaction-id mismatch as fatal."""
     rig = make_sim_rig(default_frame_source, scenario="late-response")
-    session = TetherSession(camera_factory("sim", rig=rig, timeout_s=0.3), tmp_path)
+    session = TetherSession(open_camera("sim", rig=rig, timeout_s=0.3), tmp_path)
     session.connect()
     results = session.capture(2)
     counters = session.camera.transport.counters
@@ -135,7 +136,7 @@ def test_after_a_timeout_the_host_cancels_the_transaction_and_resets_a_device_th
         return original(dev_handle, request_type, request, value, index, data, timeout)
 
     rig.backend.ctrl_transfer = spy  # type: ignore[method-assign]
-    session = TetherSession(camera_factory("sim", rig=rig, timeout_s=0.3), tmp_path)
+    session = TetherSession(open_camera("sim", rig=rig, timeout_s=0.3), tmp_path)
     session.connect()
     results = session.capture(1)
     session.close()
@@ -169,7 +170,7 @@ def test_a_failed_half_press_is_released() -> None:
 
 def test_a_stalled_endpoint_is_cleared_and_the_read_retried(tmp_path: Path) -> None:
     rig = make_sim_rig(default_frame_source, scenario="epipe-download")
-    session = TetherSession(camera_factory("sim", rig=rig), tmp_path)
+    session = TetherSession(open_camera("sim", rig=rig), tmp_path)
     session.connect()
     results = session.capture(1)
     stalls = session.camera.transport.counters.stalls_cleared
@@ -247,7 +248,7 @@ def test_the_card_value_of_the_capture_destination_is_read_from_the_body(tmp_pat
     sim = rig.camera
     sim.lists[0xD11C] = (3, 2, struct.pack("<2I", 1, 4))  # a body whose card is 1
     sim.values[0xD11C] = struct.pack("<I", 4)
-    session = TetherSession(camera_factory("sim", rig=rig), tmp_path, capture_target="card")
+    session = TetherSession(open_camera("sim", rig=rig), tmp_path, capture_target="card")
     session.connect()
     assert sim.value(0xD11C) == 1
     session.capture(1)
@@ -270,7 +271,7 @@ def test_the_host_asks_for_focus_information_and_reads_it_between_half_and_full_
 
 def test_one_shot_af_without_focus_is_refused_and_the_half_press_released(tmp_path: Path) -> None:
     rig = make_sim_rig(default_frame_source, scenario="af-fail")
-    session = TetherSession(camera_factory("sim", rig=rig), tmp_path)
+    session = TetherSession(open_camera("sim", rig=rig), tmp_path)
     session.connect()
     [result] = session.capture(1)
     session.close()
@@ -282,7 +283,7 @@ def test_raw_plus_jpeg_to_ram_downloads_both_files_of_every_shot_and_frees_the_b
     rig = make_sim_rig(default_frame_source)
     sim = rig.camera
     sim.ram_buffer_slots = 2  # one RAW+JPEG shot fills it
-    session = TetherSession(camera_factory("sim", rig=rig), tmp_path, capture_target="ram")
+    session = TetherSession(open_camera("sim", rig=rig), tmp_path, capture_target="ram")
     session.connect()
     session.camera.set_property("imageformat", "RAW + Large Fine JPEG")
     results = session.capture(3)
@@ -297,7 +298,7 @@ def test_host_capacity_is_announced_before_a_ram_capture_when_the_body_counts_fe
     rig = make_sim_rig(default_frame_source)
     sim = rig.camera
     sim.values[0xD11B] = struct.pack("<I", 5)
-    session = TetherSession(camera_factory("sim", rig=rig), tmp_path, capture_target="ram")
+    session = TetherSession(open_camera("sim", rig=rig), tmp_path, capture_target="ram")
     session.connect()
     before = _ops(sim).count(Op.EOS_PC_HDD_CAPACITY)
     session.capture(1)
@@ -308,7 +309,7 @@ def test_host_capacity_is_announced_before_a_ram_capture_when_the_body_counts_fe
 def test_closing_restores_the_capture_destination_and_turns_the_display_back_on(tmp_path: Path) -> None:
     rig = make_sim_rig(default_frame_source)
     sim = rig.camera
-    session = TetherSession(camera_factory("sim", rig=rig), tmp_path, capture_target="ram")
+    session = TetherSession(open_camera("sim", rig=rig), tmp_path, capture_target="ram")
     session.connect()
     assert sim.props[0xD11C] == 4
     session.capture(1)
@@ -361,7 +362,7 @@ def test_setting_f18_picks_the_code_the_body_offers() -> None:
 
 def test_ptpip_host_sends_the_same_guid_on_every_connection(monkeypatch: pytest.MonkeyPatch) -> None:
     from mca.devices.ptp.transport_ptpip import PtpIpTransport
-    from mca.devices.sim_eos70d import ptpip_server
+    from mca.devices.sim.eos70d import ptpip_server
 
     seen: list[bytes] = []
     original = ptpip_server.parse_init_command_request

@@ -15,16 +15,16 @@ from typer.testing import CliRunner
 
 from mca.capture.cli import app
 from mca.devices.ptp.codes import EosEventCode, Op
-from mca.devices.sim_eos70d.responder import SimEos70D, default_frame_source
+from mca.devices.sim.eos70d.responder import SimEos70D, default_frame_source
 
 
 @pytest.fixture()
 def one_camera(monkeypatch: pytest.MonkeyPatch):
     """One simulated body for every run of the test: its card outlives a run, as a real camera's does."""
-    import mca.capture.tether as tether
+    import mca.devices.cameras as cameras
 
-    rig = tether.make_sim_rig(default_frame_source)
-    monkeypatch.setattr(tether, "make_sim_rig", lambda *a, **k: rig)
+    rig = cameras.make_sim_rig(default_frame_source)
+    monkeypatch.setattr(cameras, "make_sim_rig", lambda *a, **k: rig)
     return rig
 
 
@@ -121,7 +121,7 @@ def test_ctrl_c_as_the_camera_reports_a_shutter_button_shot_still_catalogues_it(
     assert "IMG_0001.CR2" in first.output and "stopping (Ctrl-C)" in first.output
 
     monkeypatch.undo()  # the next run: no more Ctrl-C, the same camera
-    monkeypatch.setattr("mca.capture.tether.make_sim_rig", lambda *a, **k: one_camera)
+    monkeypatch.setattr("mca.devices.cameras.make_sim_rig", lambda *a, **k: one_camera)
     second = CliRunner().invoke(app, ["capture", "--camera", "sim", "--count", "1", "--out", str(out)])
     assert second.exit_code == 0, second.output
     assert [(r[0], r[3]) for r in rows(out)] == [("IMG_0001.CR2", "downloaded"), ("IMG_0002.CR2", "downloaded")]

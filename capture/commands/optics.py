@@ -24,7 +24,7 @@ def register(app: typer.Typer) -> None:
 
         Signs: positive means farther than the focus plane.
         """
-        from mca.capture.profiles import convert_optics
+        from mca.capture.profile_app import convert_optics
 
         try:
             values = convert_optics(

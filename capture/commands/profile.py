@@ -13,7 +13,7 @@ def register(app: typer.Typer) -> None:
     @profile_app.command("list")
     def list_profiles() -> None:
         """List the built-in profiles."""
-        from mca.capture.profiles import profile_list_lines
+        from mca.capture.profile_app import profile_list_lines
 
         for line in profile_list_lines():
             typer.echo(line)
@@ -21,7 +21,7 @@ def register(app: typer.Typer) -> None:
     @profile_app.command("show")
     def show(profile: str = typer.Argument(..., metavar="NAME|PATH", help="Built-in name or TOML file.")) -> None:
         """Show a profile: its fields and the optics they imply."""
-        from mca.capture.profiles import ProfileError, describe_profile
+        from mca.capture.profile_app import ProfileError, describe_profile
 
         try:
             typer.echo(describe_profile(profile))

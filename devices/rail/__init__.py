@@ -40,7 +40,7 @@ def open_rail(spec: str, *, sim_speedup: float = 1.0, **options: object) -> Grbl
     """
     if spec != SIM:
         return GrblRail(spec, **options)  # type: ignore[arg-type]
-    from mca.devices.sim_grbl import SimGrblPty
+    from mca.devices.sim.grbl import SimGrblPty
 
     runner = SimGrblPty(speedup=sim_speedup)
     runner.start()

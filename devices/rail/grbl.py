@@ -47,7 +47,7 @@ class GrblRail(Rail):
     """A GRBL 1.1 controller driving one axis (X) of a bench rail.
 
     `port` is anything `serial.serial_for_url` opens: `/dev/ttyUSB0`, a pty from
-    `devices.sim_grbl`, or `loop://`. Positions are mm from the home switch,
+    `devices.sim.grbl`, or `loop://`. Positions are mm from the home switch,
     mapped onto GRBL's machine coordinates with the controller's own `$$`
     settings (`$130` travel, `$23` homing direction).
     """

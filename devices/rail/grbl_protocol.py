@@ -1,7 +1,7 @@
 """GRBL 1.1 serial protocol as pure functions: bytes in, messages out, commands out as bytes; no I/O.
 
 The host driver (`devices.rail.grbl`) and the simulated controller
-(`devices.sim_grbl`) share this codec from the two ends of the line.
+(`devices.sim.grbl`) share this codec from the two ends of the line.
 Reference: GRBL 1.1 `doc/markdown/interface.md`, `doc/csv/error_codes_en_US.csv`
 and `doc/csv/alarm_codes_en_US.csv` (gnea/grbl).
 """

@@ -36,9 +36,9 @@ import cv2
 import numpy as np
 import scipy.fft
 
+from mca.devices.sim.textures import Texture, texture_patch
 from mca.processing.camera import CHANNELS, CameraProfile, FilterAperture
 from mca.processing.optics import MCAOptics
-from mca.processing.textures import Texture, texture_patch
 
 # The Bayer sites of an RGGB mosaic: (name, x offset, y offset, sensor channel index) in each 2x2 block.
 BAYER_SITES: tuple[tuple[str, int, int, int], ...] = (("R", 0, 0, 0), ("G1", 1, 0, 1), ("G2", 0, 1, 1), ("B", 1, 1, 2))

@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from mca.devices.ptp.codes import Op
-from mca.devices.sim_eos70d.responder import SimBehaviour
+from mca.devices.sim.eos70d.responder import SimBehaviour
 
 
 @dataclass

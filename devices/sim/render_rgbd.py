@@ -1,7 +1,7 @@
 """MCA captures of real photographs with known depth: an sRGB image and its disparity map in, the capture and truth out.
 
 An RGB-D scene (e.g. a Middlebury stereo view with its ground-truth disparity) is rendered
-through the MCA optics with the same image formation as `processing.simulate` (thin lens,
+through the MCA optics with the same image formation as `devices.sim.render` (thin lens,
 eqs. 6 and 11; see that module's docstring): a point at distance Z is imaged by filter c
 shifted by `SimulationOptics.channel_shift_px(c, Z)` and spread over the filter's disk of
 `SimulationOptics.blur_diameter_px(Z)`, with the in-focus sharpness blur on top, shift and
@@ -49,9 +49,9 @@ import numpy as np
 import scipy.fft
 import scipy.ndimage
 
+from mca.devices.sim.render import BAYER_SITES, SensorModel, SimulationOptics, _expose, _Spectra
 from mca.processing.camera import CHANNELS, CameraProfile
 from mca.processing.colour import srgb_decode
-from mca.processing.simulate import BAYER_SITES, SensorModel, SimulationOptics, _expose, _Spectra
 
 SLICE_STEP_PX = 0.25  # largest red-blue disparity step between slices (px of the render)
 OCCLUSION_GAP_PX = 1.0  # a slice hides another only when it is at least this much nearer (red-blue px)

@@ -47,7 +47,6 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from datetime import datetime
 from fractions import Fraction
-from pathlib import Path
 
 import numpy as np
 
@@ -679,31 +678,3 @@ def _write_at(out: io.BytesIO, offset: int, data: bytes) -> None:
         out.write(b"\0" * (offset - out.tell()))
     assert out.tell() == offset, "CR2 layout overlap"
     out.write(data)
-
-
-def write_cr2(
-    path: str | os.PathLike[str],
-    mosaic: np.ndarray,
-    *,
-    black_level: int = 2048,
-    white_level: int = 15000,
-    metadata: Cr2Metadata | None = None,
-    bits_per_sample: int = 14,
-    preview: bool = True,
-) -> Path:
-    """Write `mosaic` (H, W) uint16 RGGB as a Canon CR2 at `path`, atomically; returns the path.
-
-    The file appears under its final name only once complete (written to a
-    temporary name in the same folder, then renamed).
-    """
-    data = cr2_bytes(
-        mosaic,
-        black_level=black_level,
-        white_level=white_level,
-        metadata=metadata,
-        bits_per_sample=bits_per_sample,
-        preview=preview,
-    )
-    from mca.capture.outputs import write_bytes_atomic
-
-    return write_bytes_atomic(Path(path), data)

@@ -1,59 +1,14 @@
-"""Camera profiles on disk: the built-in TOML files beside this module and user files, loaded, validated, described.
-
-Also the application side of `mca profile` and `mca optics`: a profile described with the optics it
-implies, and one of disparity, inter-image depth or distance converted into all four.
-"""
+"""The application side of `mca profile` and `mca optics` (and `--profile none` of `mca process`): a profile
+described with the optics it implies, and one of disparity, inter-image depth or distance converted into all four."""
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 
-from mca.processing.camera import CameraProfile, ProfileError, profile_from_mapping
+from mca.devices.profiles import DEFAULT_PROFILE, ProfileError, builtin_names, load_profile
+from mca.processing.camera import CameraProfile
 
-BUILTIN_DIR = Path(__file__).resolve().parent
-DEFAULT_PROFILE = "paper-70d"
-
-
-def builtin_names() -> list[str]:
-    """Names of the profiles shipped with the appliance."""
-    return sorted(p.stem for p in BUILTIN_DIR.glob("*.toml"))
-
-
-def load_profile_file(path: str | Path) -> CameraProfile:
-    """Read and validate a profile TOML file; a `ProfileError` names the file and the field."""
-    path = Path(path)
-    source = str(path)
-    try:
-        text = path.read_bytes().decode("utf-8")
-    except FileNotFoundError:
-        raise ProfileError(
-            "<file>", "no such file; give a built-in name (mca profile list) or a path", source
-        ) from None
-    except IsADirectoryError:
-        raise ProfileError("<file>", "is a directory, not a profile TOML file", source) from None
-    except UnicodeDecodeError as exc:
-        raise ProfileError("<file>", f"is not UTF-8 text ({exc.reason} at byte {exc.start})", source) from None
-    except OSError as exc:
-        raise ProfileError("<file>", f"cannot be read: {exc.strerror}", source) from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ProfileError("<file>", f"is not valid TOML: {exc}", source) from None
-    return profile_from_mapping(data, source)
-
-
-def load_profile(name_or_path: str | Path) -> CameraProfile:
-    """A built-in profile by name, or a profile file by path."""
-    text = str(name_or_path)
-    if text in builtin_names():
-        return load_profile_file(BUILTIN_DIR / f"{text}.toml")
-    path = Path(text)
-    if path.suffix.lower() != ".toml" and not path.exists():
-        raise ProfileError(
-            "<name>", f"'{text}' is neither a built-in profile ({', '.join(builtin_names())}) nor a TOML file", text
-        )
-    return load_profile_file(path)
+__all__ = ["ProfileError", "convert_optics", "describe_profile", "profile_list_lines", "resolve_profile"]
 
 
 def resolve_profile(name: str | None) -> CameraProfile:
@@ -152,16 +107,3 @@ def convert_optics(
         "inter_object_depth_mm": round(estimate.inter_object_depth_mm, 4),
         "distance_mm": round(estimate.distance_mm, 4),
     }
-
-
-__all__ = [
-    "DEFAULT_PROFILE",
-    "ProfileError",
-    "builtin_names",
-    "convert_optics",
-    "describe_profile",
-    "load_profile",
-    "load_profile_file",
-    "profile_list_lines",
-    "resolve_profile",
-]

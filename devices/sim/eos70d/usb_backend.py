@@ -31,8 +31,8 @@ from mca.devices.ptp.codes import CANON_VENDOR_ID, EOS_70D_PRODUCT_ID, Container
 from mca.devices.ptp.engine import NEED_DATA, CommandReceived, DataFinished, DataReceived, Responder
 from mca.devices.ptp.events import EosObjectAdded, EosRequestObjectTransfer, parse_eos_events
 from mca.devices.ptp.framing import UsbFraming
-from mca.devices.sim_eos70d.faults import DOWNLOAD_OPS, FaultPlan, corrupt_container
-from mca.devices.sim_eos70d.responder import SimEos70D
+from mca.devices.sim.eos70d.faults import DOWNLOAD_OPS, FaultPlan, corrupt_container
+from mca.devices.sim.eos70d.responder import SimEos70D
 
 MAX_PACKET_BYTES = 512
 EP_BULK_IN, EP_BULK_OUT, EP_INTR_IN = 0x81, 0x02, 0x83

@@ -13,8 +13,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from mca.processing.simulate import Layer, Scene, Shape, Slant
-from mca.processing.textures import Texture
+from mca.devices.sim.render import Layer, Scene, Shape, Slant
+from mca.devices.sim.textures import Texture
 
 FRAME_WIDTH = 1.5  # frame units; the height is 1
 BACKGROUND_DEPTH_MM = 500.0  # the wall, behind the focus plane

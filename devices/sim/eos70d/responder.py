@@ -64,7 +64,7 @@ from mca.devices.ptp.events import (
 )
 from mca.devices.ptp.liveview import pack_viewfinder_data
 from mca.devices.ptp.properties import EOS_APERTURE, EOS_ISO, EOS_SHUTTER
-from mca.devices.sim_eos70d import facts_70d
+from mca.devices.sim.eos70d import facts_70d
 
 #: A frame source gives the bytes of shot number `index` (1-based), or `(file name, bytes)`.
 FrameSource = Callable[[int], "bytes | tuple[str, bytes]"]

@@ -45,8 +45,8 @@ from mca.devices.ptp.ptpip_packets import (
 )
 from mca.devices.ptp.transport import TransportError, TransportTimeout
 from mca.devices.ptp.transport_ptpip import _Conn
-from mca.devices.sim_eos70d.faults import DOWNLOAD_OPS, FaultPlan
-from mca.devices.sim_eos70d.responder import SimEos70D
+from mca.devices.sim.eos70d.faults import DOWNLOAD_OPS, FaultPlan
+from mca.devices.sim.eos70d.responder import SimEos70D
 
 DATA_CHUNK_BYTES = 1024 * 1024
 MAX_DATA_OUT_BYTES = 16 * 1024 * 1024
