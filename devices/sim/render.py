@@ -222,6 +222,19 @@ class SimulationOptics:
         """Sensor channel <- filter mixing matrix of the aperture, or None for none."""
         return None if self.aperture.crosstalk is None else np.asarray(self.aperture.crosstalk, dtype=np.float32)
 
+    def truth(self) -> dict[str, Any]:
+        """The optics as a rendering's truth file records them (`optics` in `<scene>.truth.json`)."""
+        return {
+            "focal_length_mm": self.focal_length_mm,
+            "sensor_distance_mm": self.sensor_distance_mm,
+            "pixel_pitch_mm": self.pixel_pitch_mm,
+            "filter_centre_distance_mm": self.aperture.baseline_mm,
+            "widest_pair": list(self.aperture.widest_pair),
+            "filter_diameter_mm": self.aperture.filter_diameter_mm,
+            "width_px": self.width_px,
+            "height_px": self.height_px,
+        }
+
     def disparity_px(self, distance_mm: float) -> float:
         """Widest-pair disparity at `distance_mm`, exact thin lens, in pixels of this mosaic."""
         return float(self.mca.disparity_px_at_distance(distance_mm))
@@ -717,16 +730,7 @@ def scene_truth(
         "scene": scene.name,
         "description": scene.description,
         "focus_distance_mm": focus,
-        "optics": {
-            "focal_length_mm": optics.focal_length_mm,
-            "sensor_distance_mm": optics.sensor_distance_mm,
-            "pixel_pitch_mm": optics.pixel_pitch_mm,
-            "filter_centre_distance_mm": optics.aperture.baseline_mm,
-            "widest_pair": list(optics.aperture.widest_pair),
-            "filter_diameter_mm": optics.aperture.filter_diameter_mm,
-            "width_px": optics.width_px,
-            "height_px": optics.height_px,
-        },
+        "optics": optics.truth(),
         "objects": objects,
         "background": background,
     }
