@@ -68,6 +68,8 @@ def snap_boundaries(
     reach = float(np.abs(shifts).max())
     ids = [int(i) for i in np.unique(labels) if int(i) in models]
     box = (params.window_px, params.window_px)
+    reach_px = params.band_px + params.window_px // 2 + 1  # how far a region's scoring reaches beyond it
+    channels = cv2.split(np.asarray(planes, dtype=np.float32))  # split once for every region's warp
     for _ in range(params.passes):
         edge = np.zeros((height, width), bool)
         edge[:, 1:] |= labels[:, 1:] != labels[:, :-1]
@@ -78,21 +80,28 @@ def snap_boundaries(
         best = np.full((height, width), np.inf, np.float32)
         choice = labels.copy()
         for k in ids:
-            mask = labels == k
-            near = _dilate(mask, params.band_px + 1) & band
+            full_mask = labels == k
+            rows, cols = np.flatnonzero(full_mask.any(axis=1)), np.flatnonzero(full_mask.any(axis=0))
+            if rows.size == 0:
+                continue
+            # the region's box grown by the reach (an elliptic dilation's box is the grown box): all below
+            # happens in it, where it equals the same work done on the whole frame
+            y0, y1 = max(int(rows[0]) - reach_px, 0), min(int(rows[-1]) + 1 + reach_px, height)
+            x0, x1 = max(int(cols[0]) - reach_px, 0), min(int(cols[-1]) + 1 + reach_px, width)
+            mask = full_mask[y0:y1, x0:x1]
+            near = _dilate(mask, params.band_px + 1) & band[y0:y1, x0:x1]
             if not near.any():
                 continue
-            ys, xs = np.nonzero(_dilate(mask, params.band_px + params.window_px // 2 + 1))
-            y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+            core = (mask & ~band[y0:y1, x0:x1]).astype(np.float32)
             model = models[k][y0:y1, x0:x1]
             pad = int(np.ceil(float(np.abs(model).max()) * reach)) + 2
             if pad > max(height, width):
                 continue
-            aligned = _appearance(warp_channels(planes, aperture, model, origin_xy=(int(x0), int(y0))), white)
-            core = (mask & ~band)[y0:y1, x0:x1].astype(np.float32)
+            warped = warp_channels(planes, aperture, model, origin_xy=(int(x0), int(y0)), channels=channels)
+            aligned = _appearance(warped, white)
             count = cv2.boxFilter(core, -1, box, normalize=False, borderType=cv2.BORDER_CONSTANT)
             total = cv2.boxFilter(aligned * core[..., None], -1, box, normalize=False, borderType=cv2.BORDER_CONSTANT)
-            usable = near[y0:y1, x0:x1] & (count >= 0.15 * params.window_px**2)
+            usable = near & (count >= 0.15 * params.window_px**2)
             squares = cv2.boxFilter(
                 np.sum(aligned * aligned, axis=2) * core, -1, box, normalize=False, borderType=cv2.BORDER_CONSTANT
             )

@@ -64,7 +64,7 @@ def candidate_disparities(range_px: tuple[float, float], step_px: float) -> np.n
     return (np.arange(np.floor(low / step_px), np.ceil(high / step_px) + 1) * step_px).astype(np.float64)
 
 
-def _volume_hwd(
+def _volume_dhw(
     planes: np.ndarray,
     aperture: FilterAperture,
     candidates: np.ndarray,
@@ -81,9 +81,38 @@ def _volume_hwd(
     )
 
 
-def _upsampled(volume_dhw: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    h, w = shape
-    return np.stack([cv2.resize(s, (w, h), interpolation=cv2.INTER_LINEAR) for s in volume_dhw])
+@nb.njit(cache=True, parallel=True, fastmath=True)
+def _blend_kernel(fine: np.ndarray, coarse: np.ndarray, w_fine: float, w_coarse: float, out: np.ndarray) -> None:
+    d_count, h, w = fine.shape
+    _, ch, cw = coarse.shape
+    sy, sx = ch / h, cw / w
+    for y in nb.prange(h):
+        fy = max((y + 0.5) * sy - 0.5, 0.0)
+        y0 = min(int(fy), ch - 1)
+        y1 = min(y0 + 1, ch - 1)
+        ty = fy - y0
+        for x in range(w):
+            fx = max((x + 0.5) * sx - 0.5, 0.0)
+            x0 = min(int(fx), cw - 1)
+            x1 = min(x0 + 1, cw - 1)
+            tx = fx - x0
+            a, b = (1.0 - ty) * (1.0 - tx), (1.0 - ty) * tx
+            c, e = ty * (1.0 - tx), ty * tx
+            o = out[y, x]
+            for d in range(d_count):
+                up = a * coarse[d, y0, x0] + b * coarse[d, y0, x1] + c * coarse[d, y1, x0] + e * coarse[d, y1, x1]
+                o[d] = w_fine * fine[d, y, x] + w_coarse * up
+
+
+def _blend_hwd(fine_dhw: np.ndarray, coarse_dhw: np.ndarray | None, coarse_weight: float) -> np.ndarray:
+    """The (H, W, D) volume the aggregation takes: the fine (D, H, W) volume, averaged with the coarse one
+    brought up bilinearly (pixel centres aligned, as cv2.resize) when there is one; one pass, no temporaries."""
+    if coarse_dhw is None:
+        return np.ascontiguousarray(fine_dhw.transpose(1, 2, 0))
+    out = np.empty(fine_dhw.shape[1:] + fine_dhw.shape[:1], np.float32)
+    total = 1.0 + coarse_weight
+    _blend_kernel(fine_dhw, np.ascontiguousarray(coarse_dhw), 1.0 / total, coarse_weight / total, out)
+    return out
 
 
 @nb.njit(cache=True, parallel=True, fastmath=True)
@@ -140,10 +169,8 @@ def occupied_range(
     candidates = candidate_disparities((range_px[0] / 4.0, range_px[1] / 4.0), params.step_px)
     if len(candidates) < 4:
         return range_px
-    volume = _volume_hwd(small, aperture, candidates, params)
-    aggregated = aggregate(
-        np.ascontiguousarray(volume.transpose(1, 2, 0)), display_gamma(small).mean(axis=2), params.p1, params.p2
-    )
+    volume = _volume_dhw(small, aperture, candidates, params)
+    aggregated = aggregate(_blend_hwd(volume, None, 0.0), display_gamma(small).mean(axis=2), params.p1, params.p2)
     disparity, _ = _winner(aggregated, candidates, _PATHS * params.p2)
     low = float(np.percentile(disparity, 0.2)) * 4.0 - params.range_margin_px - 4.0 * params.step_px
     high = float(np.percentile(disparity, 99.8)) * 4.0 + params.range_margin_px + 4.0 * params.step_px
@@ -163,15 +190,14 @@ def estimate_dense(
     h, w = planes.shape[:2]
     search = occupied_range(planes, aperture, range_px, params) if params.narrow_range else range_px
     candidates = candidate_disparities(search, params.step_px)
-    volume = _volume_hwd(planes, aperture, candidates, params, inputs)
+    coarse = None
     if params.coarse_weight > 0 and min(h, w) >= 32:
-        half = cv2.pyrDown(planes)
-        coarse = _volume_hwd(half, aperture, candidates / 2.0, params)
-        volume += np.float32(params.coarse_weight) * _upsampled(coarse, (h, w))
-        volume *= np.float32(1.0 / (1.0 + params.coarse_weight))
+        coarse = _volume_dhw(cv2.pyrDown(planes), aperture, candidates / 2.0, params)
+    volume = _blend_hwd(_volume_dhw(planes, aperture, candidates, params, inputs), coarse, params.coarse_weight)
+    del coarse
     scale = params.step_px / 0.5  # penalties are given for 0.5 px steps
     aggregated = aggregate(
-        np.ascontiguousarray(volume.transpose(1, 2, 0)),
+        volume,
         display_gamma(planes).mean(axis=2),
         params.p1 * scale,
         params.p2 * scale,

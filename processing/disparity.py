@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import os
 import threading
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -82,14 +83,16 @@ def warp_channels(
     disparity_px: np.ndarray,
     interpolation: int = cv2.INTER_LINEAR,
     origin_xy: tuple[int, int] = (0, 0),
+    channels: Sequence[np.ndarray] | None = None,
 ) -> np.ndarray:
-    """Channels re-aligned for a per-pixel disparity map (same grid as `planes`, or a crop at `origin_xy`)."""
+    """Channels re-aligned for a per-pixel disparity map (same grid as `planes`, or a crop at `origin_xy`);
+    `channels`: the planes' float32 channels as `cv2.split` gives them, for a caller warping many crops."""
     shifts = channel_shifts(aperture)
     height, width = disparity_px.shape
     xs = np.arange(width, dtype=np.float32)[None, :] + np.float32(origin_xy[0])
     ys = np.arange(height, dtype=np.float32)[:, None] + np.float32(origin_xy[1])
     d = disparity_px.astype(np.float32, copy=False)
-    channels = cv2.split(np.asarray(planes, dtype=np.float32))
+    split = cv2.split(np.asarray(planes, dtype=np.float32)) if channels is None else channels
     out = np.empty((height, width, 3), dtype=np.float32)
     rows = 64
 
@@ -101,7 +104,7 @@ def warp_channels(
         for c in range(3):
             map_x = _shifted_map(xs, ds, shifts[c, 0], (y1 - y0, width))
             map_y = _shifted_map(ys[y0:y1], ds, shifts[c, 1], (y1 - y0, width))
-            moved.append(cv2.remap(channels[c], map_x, map_y, interpolation, borderMode=cv2.BORDER_REPLICATE))
+            moved.append(cv2.remap(split[c], map_x, map_y, interpolation, borderMode=cv2.BORDER_REPLICATE))
         out[y0:y1] = cv2.merge(moved)
 
     parallel_map(strip, range(0, height, rows))

@@ -122,38 +122,24 @@ def fit_planes_at(
     Iteratively reweighted: residuals beyond 1.5 sigmas are down-weighted (Huber), beyond `drop_sigmas` sigmas +
     `drop_px` dropped, sigma the label's weighted residual spread but at least `min_sigma_px`; a ridge of
     `slope_ridge` per unit weight pulls the slopes towards 0 (small or degenerate supports)."""
-    lab = np.asarray(lab, np.int64)
-    xs = np.asarray(xs, np.float64)
-    ys = np.asarray(ys, np.float64)
-    d = np.asarray(values, np.float64)
-    wt = np.asarray(weights, np.float64)
+    lab = np.ascontiguousarray(lab, np.int64)
+    xs = np.ascontiguousarray(xs, np.float64)
+    ys = np.ascontiguousarray(ys, np.float64)
+    d = np.ascontiguousarray(values, np.float64)
+    wt = np.ascontiguousarray(weights, np.float64)
     coef: np.ndarray = np.zeros((count, 3))
-    robust = wt
+    sums = np.zeros((9, count))
     for iteration in range(iterations):
-        if iteration > 0:
-            residual = d - (coef[lab, 0] * xs + coef[lab, 1] * ys + coef[lab, 2])
-            spread = np.bincount(lab, wt * residual * residual, count) / np.maximum(np.bincount(lab, wt, count), 1e-12)
-            sigma = np.maximum(np.sqrt(spread), min_sigma_px)[lab]
-            ratio = np.abs(residual) / (1.5 * sigma)
-            robust = wt / np.maximum(1.0, ratio) * (np.abs(residual) < drop_sigmas * sigma + drop_px)
-        s1 = np.bincount(lab, robust, count)
-        sx = np.bincount(lab, robust * xs, count)
-        sy = np.bincount(lab, robust * ys, count)
+        _plane_sums(lab, xs, ys, d, wt, coef, iteration > 0, min_sigma_px, drop_sigmas, drop_px, sums)
+        s1, sx, sy = sums[0], sums[1], sums[2]
         a = np.empty((count, 3, 3))
-        a[:, 0, 0] = np.bincount(lab, robust * xs * xs, count)
-        a[:, 0, 1] = a[:, 1, 0] = np.bincount(lab, robust * xs * ys, count)
-        a[:, 1, 1] = np.bincount(lab, robust * ys * ys, count)
+        a[:, 0, 0] = sums[3]
+        a[:, 0, 1] = a[:, 1, 0] = sums[4]
+        a[:, 1, 1] = sums[5]
         a[:, 0, 2] = a[:, 2, 0] = sx
         a[:, 1, 2] = a[:, 2, 1] = sy
         a[:, 2, 2] = s1
-        rhs = np.stack(
-            [
-                np.bincount(lab, robust * xs * d, count),
-                np.bincount(lab, robust * ys * d, count),
-                np.bincount(lab, robust * d, count),
-            ],
-            axis=1,
-        )
+        rhs = np.stack([sums[6], sums[7], sums[8]], axis=1)
         # a ridge on the slopes (the offset is free, so it acts about the support's centroid)
         ridge = slope_ridge * np.maximum(s1, 1e-9)
         a[:, 0, 0] += ridge
@@ -162,6 +148,45 @@ def fit_planes_at(
         coef = np.linalg.solve(a, rhs[..., None])[..., 0]
         coef[s1 <= 1e-9] = 0.0
     return coef
+
+
+@nb.njit(cache=True)
+def _plane_sums(lab, xs, ys, d, wt, coef, reweight, min_sigma_px, drop_sigmas, drop_px, sums):
+    """One pass of `fit_planes_at`'s weighted sums per label into `sums` (9, count): 1, x, y, xx, xy, yy, xd,
+    yd, d, each weighted by the robust weight (Huber beyond 1.5 sigmas, dropped beyond drop_sigmas sigmas +
+    drop_px; the plain weights when not `reweight`). Serial, in the order of the points: the same sums as
+    numpy's bincount."""
+    n = lab.shape[0]
+    count = sums.shape[1]
+    sums[:] = 0.0
+    sigma = np.empty(count)
+    if reweight:
+        spread = np.zeros(count)
+        total = np.zeros(count)
+        for i in range(n):
+            k = lab[i]
+            r = d[i] - (coef[k, 0] * xs[i] + coef[k, 1] * ys[i] + coef[k, 2])
+            spread[k] += wt[i] * r * r
+            total[k] += wt[i]
+        for k in range(count):
+            sigma[k] = max(np.sqrt(spread[k] / max(total[k], 1e-12)), min_sigma_px)
+    for i in range(n):
+        k = lab[i]
+        x, y, v = xs[i], ys[i], d[i]
+        w = wt[i]
+        if reweight:
+            r = v - (coef[k, 0] * x + coef[k, 1] * y + coef[k, 2])
+            ratio = abs(r) / (1.5 * sigma[k])
+            w = w / max(1.0, ratio) * (1.0 if abs(r) < drop_sigmas * sigma[k] + drop_px else 0.0)
+        sums[0, k] += w
+        sums[1, k] += w * x
+        sums[2, k] += w * y
+        sums[3, k] += w * x * x
+        sums[4, k] += w * x * y
+        sums[5, k] += w * y * y
+        sums[6, k] += w * x * v
+        sums[7, k] += w * y * v
+        sums[8, k] += w * v
 
 
 @dataclass

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from mca_scenes import render_layers, texture, two_boxes_scene
@@ -69,3 +70,21 @@ def test_the_b_spline_sampler_removes_the_noise_bias_of_full_colour_input():
         medians[sampling] = float(np.median(result.raw_disparity_px[middle]))
     assert abs(medians["bspline"] - 0.25) < 0.15
     assert medians["bilinear"] - 0.25 > 0.15  # the bias this sampler exists for
+
+
+@pytest.mark.parametrize("shape", [(40, 64), (37, 51)])
+def test_the_coarse_cost_comes_back_up_as_opencv_resizes_it(shape):
+    """The fused blend (fine volume averaged with the half-size one brought up, transposed to (H, W, D) in one
+    pass) against OpenCV's bilinear resize of each slice, on odd and even sizes."""
+    from mca.processing.dense import _blend_hwd
+
+    rng = np.random.default_rng(5)
+    h, w = shape
+    fine = rng.random((7, h, w), dtype=np.float32)
+    coarse = rng.random((7, (h + 1) // 2, (w + 1) // 2), dtype=np.float32)
+    up = np.stack([cv2.resize(s, (w, h), interpolation=cv2.INTER_LINEAR) for s in coarse])
+    expected = ((fine + 0.5 * up) / 1.5).transpose(1, 2, 0)
+    blended = _blend_hwd(fine, coarse, 0.5)
+    assert blended.shape == (h, w, 7) and blended.flags.c_contiguous
+    assert np.abs(blended - expected).max() < 1e-5
+    assert np.array_equal(_blend_hwd(fine, None, 0.5), fine.transpose(1, 2, 0))
