@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from mca.processing.camera import FilterAperture
-from mca.processing.disparity import channel_shifts, warp_channels
+from mca.processing.disparity import channel_shifts, parallel_map, warp_channels
 
 
 @dataclass(frozen=True)
@@ -79,11 +79,14 @@ def snap_boundaries(
             break
         best = np.full((height, width), np.inf, np.float32)
         choice = labels.copy()
-        for k in ids:
+
+        def score_of(k: int, labels: np.ndarray = labels, band: np.ndarray = band) -> tuple | None:
+            """Region k's scores over its grown box (None: nothing to score); reads only, so regions score side
+            by side."""
             full_mask = labels == k
             rows, cols = np.flatnonzero(full_mask.any(axis=1)), np.flatnonzero(full_mask.any(axis=0))
             if rows.size == 0:
-                continue
+                return None
             # the region's box grown by the reach (an elliptic dilation's box is the grown box): all below
             # happens in it, where it equals the same work done on the whole frame
             y0, y1 = max(int(rows[0]) - reach_px, 0), min(int(rows[-1]) + 1 + reach_px, height)
@@ -91,12 +94,12 @@ def snap_boundaries(
             mask = full_mask[y0:y1, x0:x1]
             near = _dilate(mask, params.band_px + 1) & band[y0:y1, x0:x1]
             if not near.any():
-                continue
+                return None
             core = (mask & ~band[y0:y1, x0:x1]).astype(np.float32)
             model = models[k][y0:y1, x0:x1]
             pad = int(np.ceil(float(np.abs(model).max()) * reach)) + 2
             if pad > max(height, width):
-                continue
+                return None
             warped = warp_channels(planes, aperture, model, origin_xy=(int(x0), int(y0)), channels=channels)
             aligned = _appearance(warped, white)
             count = cv2.boxFilter(core, -1, box, normalize=False, borderType=cv2.BORDER_CONSTANT)
@@ -111,7 +114,13 @@ def snap_boundaries(
             # negative log-likelihood under the region's local colour distribution (isotropic Gaussian)
             score = 0.5 * np.sum((aligned - mean) ** 2, axis=2) / variance + 1.5 * np.log(variance)
             score = cv2.blur(np.where(np.isfinite(score), score, 1e3).astype(np.float32), (3, 3))
-            score = np.where(usable, score, np.inf).astype(np.float32)
+            return y0, y1, x0, x1, np.where(usable, score, np.inf).astype(np.float32)
+
+        # scored side by side, merged in the order of the ids (the same labels as one region after another)
+        for k, scored in zip(ids, parallel_map(score_of, ids), strict=True):
+            if scored is None:
+                continue
+            y0, y1, x0, x1, score = scored
             crop_best = best[y0:y1, x0:x1]
             better = score < crop_best
             crop_best[better] = score[better]
