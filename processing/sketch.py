@@ -2,7 +2,11 @@
 
 Regions are built from the surfaces (`processing.surfaces`): neighbouring superpixels whose planes meet along
 their shared boundary (within `continuity_px`) and whose colours are alike belong to one object; regions
-smaller than `min_region_fraction` of the image join the neighbour they meet most continuously. Each region
+smaller than `min_region_fraction` of the image join the neighbour they meet most continuously. A chain of
+superpixels that lean across a depth step the dense disparity smoothed (two overlapping cards of one colour) can
+join two objects with every link continuous; such a region's pixel levels fall into two groups with few between,
+and it splits at that dip (`split_dip`: the levels within continuity_px / 2 of it hold less than that share of
+either side's band of the same width; an evenly slanted surface has no dip however wide). Each region
 gets a robust plane fitted to the surface disparity (slanted objects keep their slant) and a representative
 disparity at its centroid. Where two regions meet, the one with the smaller disparity along the boundary is
 nearer and occludes the other (T-junctions and depth steps alike); the order is nearest first.
@@ -25,6 +29,8 @@ class SketchParams:
     continuity_px: float = 0.6  # neighbouring regions whose planes meet within this (mean over the boundary) join
     colour_distance: float = 0.35  # ... when their mean display colours are at most this far apart
     same_depth_px: float = 0.0  # then regions whose planes meet within this join whatever their colours (0: off)
+    split_dip: float = 0.3  # a region whose pixel levels dip below this share of either side splits (0: off)
+    split_fraction: float = 0.01  # ... into parts of at least this fraction of the image
     min_region_fraction: float = 0.002  # smaller regions join a neighbour
     sliver_fraction: float = 0.01  # a region smaller than this ...
     sliver_width_px: float = 12.0  # ... and on average thinner (2 area / boundary) is a rim sliver
@@ -170,6 +176,57 @@ def _merge_continuous(surfaces: Surfaces, abs_gaps: np.ndarray, params: SketchPa
     return np.array([sets.find(i) for i in range(count)])
 
 
+def _level_dip(levels: np.ndarray, weights: np.ndarray, half_px: float, min_mass: float) -> tuple[float, float]:
+    """The deepest dip of the weighted level distribution: (mass within `half_px` of t over the smaller mass
+    in the `2 half_px` bands either side of that, t), over t every `half_px / 4` with at least `min_mass` on
+    each side; (inf, nan) when there is none. Density-relative, so an evenly spread (slanted) surface has no
+    dip however wide its range."""
+    order = np.argsort(levels)
+    sorted_levels = levels[order]
+    cum = np.concatenate([[0.0], np.cumsum(weights[order])])
+
+    def mass(low: float, high: float) -> float:
+        return float(cum[np.searchsorted(sorted_levels, high)] - cum[np.searchsorted(sorted_levels, low)])
+
+    best = (np.inf, float("nan"))
+    for t in np.arange(sorted_levels[0], sorted_levels[-1], 0.25 * half_px):
+        below = mass(-np.inf, t)
+        if below < min_mass or cum[-1] - below < min_mass:
+            continue
+        side = min(mass(t - 3 * half_px, t - half_px), mass(t + half_px, t + 3 * half_px))
+        if side > 0:
+            ratio = mass(t - half_px, t + half_px) / side
+            if ratio < best[0]:
+                best = (ratio, float(t))
+    return best
+
+
+def _split_at_dips(surfaces: Surfaces, disparity: np.ndarray, root: np.ndarray, params: SketchParams) -> np.ndarray:
+    """Regions whose pixels' levels fall into two groups with few between (two objects at different depths that
+    a chain of superpixels leaning across the depth step joined) split at the dip, repeatedly: the superpixels
+    whose mean level lies beyond it form a new region."""
+    flat = surfaces.labels.ravel()
+    values = disparity.ravel().astype(np.float64)
+    areas = surfaces.areas.astype(np.float64)
+    levels = np.bincount(flat, values, surfaces.count) / np.maximum(areas, 1.0)
+    min_mass = params.split_fraction * float(flat.size)
+    root = root.copy()
+    queue = [int(r) for r in np.unique(root)]
+    next_id = int(root.max()) + 1
+    while queue:
+        r = queue.pop()
+        members = np.nonzero(root == r)[0]
+        if areas[members].sum() < 2 * min_mass:
+            continue
+        inside = np.isin(flat, members)
+        ratio, t = _level_dip(values[inside], np.ones(int(inside.sum())), 0.5 * params.continuity_px, min_mass)
+        if ratio < params.split_dip:
+            root[members[levels[members] > t]] = next_id
+            queue += [r, next_id]
+            next_id += 1
+    return root
+
+
 class _UnionFind:
     def __init__(self, n: int) -> None:
         self.parent = np.arange(n)
@@ -192,6 +249,8 @@ def build_sketch(
     `disparity` (H, W) is the surface disparity on the analysis grid, `confidence` the dense confidence."""
     gaps, abs_gaps = _boundary_gaps(surfaces)
     root = _merge_continuous(surfaces, abs_gaps, params)
+    if params.split_dip > 0:
+        root = _split_at_dips(surfaces, disparity, root, params)
     roots, superpixel_region = np.unique(root, return_inverse=True)
     superpixel_region = (superpixel_region + 1).astype(np.int32)
     labels = superpixel_region[surfaces.labels]

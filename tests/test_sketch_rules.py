@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mca.processing.sketch import SketchParams, build_sketch
+from mca.processing.sketch import SketchParams, _level_dip, build_sketch
 from mca.processing.surfaces import Surfaces
 
 GREY = (0.5, 0.5, 0.5)
@@ -188,3 +188,52 @@ def test_a_slanted_region_keeps_its_plane_and_reports_it_at_its_centroid(a, b):
     assert region.plane == pytest.approx((a, b, 1.0), abs=2e-3)
     assert region.disparity_px == pytest.approx(a * 64.5 + b * 29.5 + 1.0, abs=0.02)
     assert float(region.disparity_at(40.0, 10.0)) == pytest.approx(a * 40.0 + b * 10.0 + 1.0, abs=0.02)
+
+
+def _cards_joined_by_a_leaning_superpixel(card_px: int = 100, ramp_px: int = 10) -> Surfaces:
+    """Two same-coloured cards of 10-px-wide superpixels at 2.0 and 3.0 px, and between them one superpixel whose
+    plane leans from the one to the other (what the dense disparity's smoothing makes of a depth step): every
+    superpixel boundary is continuous (0.05 px), so the merge alone makes one region of them."""
+    labels = np.repeat(np.arange(2 * card_px + ramp_px)[None, :] // 10, 40, axis=0).astype(np.int32)
+    ramp = card_px // 10
+    levels = {k: 2.0 if k < ramp else 3.0 for k in range(int(labels.max()) + 1)}
+    surfaces = surfaces_of(labels, levels, dict.fromkeys(levels, GREY))
+    slope = 1.0 / ramp_px
+    surfaces.planes[ramp] = (slope, 0.0, 2.0 - slope * card_px)
+    surfaces.fitted[ramp] = surfaces.planes[ramp]
+    return surfaces
+
+
+def test_two_cards_bridged_by_a_leaning_superpixel_split_at_the_dip_of_their_levels():
+    surfaces = _cards_joined_by_a_leaning_superpixel()
+    assert len(sketch(surfaces, SketchParams(split_dip=0.0)).regions) == 1  # the merge alone chains them
+    s = sketch(surfaces)
+    assert len(s.regions) == 2
+    levels = sorted(r.disparity_px for r in s.regions)
+    assert levels == pytest.approx([2.0, 3.0], abs=0.06)
+    regions = s.superpixel_region
+    assert len(set(regions[:10])) == len(set(regions[11:])) == 1 and regions[0] != regions[11]  # card by card
+
+
+def test_a_slanted_floor_of_many_superpixels_has_no_dip_and_stays_one_region():
+    labels = np.repeat(np.arange(300)[None, :] // 10, 40, axis=0).astype(np.int32)
+    surfaces = surfaces_of(labels, {}, dict.fromkeys(range(30), GREY))
+    surfaces.planes[:] = (0.04, 0.0, 1.0)  # 12 px of disparity across the floor, one plane
+    surfaces.fitted[:] = surfaces.planes
+    s = sketch(surfaces, SketchParams(split_dip=0.9))
+    assert len(s.regions) == 1 and s.regions[0].slanted
+
+
+@pytest.mark.parametrize(
+    ("levels", "weights", "dip"),
+    [
+        ([1.0, 1.0, 1.5, 2.0, 2.0], [10, 10, 1, 10, 10], (0.05, 1.5)),  # two groups, one between: 1 / 20
+        (list(np.linspace(0.0, 5.0, 101)), [1] * 101, None),  # evenly spread: no dip
+    ],
+)
+def test_level_dip(levels, weights, dip):
+    ratio, t = _level_dip(np.array(levels), np.array(weights, float), 0.3, 5.0)
+    if dip is None:
+        assert ratio > 0.8
+    else:
+        assert ratio == pytest.approx(dip[0], abs=0.01) and abs(t - dip[1]) <= 0.2
