@@ -14,6 +14,7 @@ The paper's steps (sections IV-V), each a stage reported to the recorder under t
                   occludes {id: [ids]}.
 - "refine":       each region's disparity refined on the raw cost with all its pixels (`processing.refine`):
                   disparity_px {id: value at the centroid, input px}, planar {id: bool}, offset_px {id: shift}.
+                  The occlusions are decided again with the refined planes (`sketch.plane_occlusions`).
 - "depth":        per pixel at processing resolution: labels (uint16), disparity_px (input px), depth_mm
                   (eq. 2 -> eqs. 13/14 -> distance; absent without optics), regions (list of `Region`).
 - "all_in_focus": image: the channels re-aligned pixel by pixel so that the fringes vanish (section V-A).
@@ -42,7 +43,7 @@ from mca.processing.mpi import all_in_focus, multi_plane_images
 from mca.processing.optics import MCAOptics
 from mca.processing.refine import Refinement, RefineParams, refine_regions
 from mca.processing.result import DepthResult, NullRecorder, Recorder, Region
-from mca.processing.sketch import Sketch, SketchParams, SketchRegion, build_sketch
+from mca.processing.sketch import Sketch, SketchParams, SketchRegion, build_sketch, plane_occlusions
 from mca.processing.surfaces import SurfaceParams, Surfaces, build_surfaces, plane_map
 
 # Position of each channel's samples relative to the centre of its 2x2 RGGB block, in half-resolution
@@ -345,7 +346,8 @@ def _refine_stage(run: _Run) -> None:
         run.refinement = refine_regions(
             run.inputs.stacked, run.aperture, run.sketch.labels, run.surface_disparity, refine, noise=noise
         )
-    run.sketch = _refined_sketch(run.sketch, run.refinement, run.params.sketch.slant_px)
+    sketch_params = run.params.sketch
+    run.sketch = _refined_sketch(run.sketch, run.refinement, sketch_params.slant_px, sketch_params.occlusion_margin_px)
     run.recorder.record(
         "refine",
         disparity_px={r.id: r.disparity_px * run.to_input for r in run.sketch.regions},
@@ -449,8 +451,9 @@ def _no_refinement(sketch: Sketch, disparity: np.ndarray) -> Refinement:
     return Refinement(disparity, dict.fromkeys(ids), dict.fromkeys(ids, (0.0, 0.0, 0.0)), dict.fromkeys(ids, 0.0))
 
 
-def _refined_sketch(sketch: Sketch, refinement: Refinement, slant_px: float) -> Sketch:
-    """The sketch's regions with their refined planes (planar regions) or shifted levels (curved ones)."""
+def _refined_sketch(sketch: Sketch, refinement: Refinement, slant_px: float, margin_px: float) -> Sketch:
+    """The sketch's regions with their refined planes (planar regions) or shifted levels (curved ones), and the
+    occlusions those planes make along the region boundaries (`sketch.plane_occlusions`)."""
     regions = []
     for r in sketch.regions:
         plane = refinement.planes.get(r.id)
@@ -474,7 +477,8 @@ def _refined_sketch(sketch: Sketch, refinement: Refinement, slant_px: float) -> 
         )
     ranked = sorted(regions, key=lambda region: region.disparity_px)
     order = {region.id: rank for rank, region in enumerate(ranked)}
-    return Sketch(sketch.labels, regions, order, sketch.occludes, sketch.superpixel_region, sketch.pair_gap_px)
+    occludes, pair_gap = plane_occlusions(sketch.labels, regions, margin_px)
+    return Sketch(sketch.labels, regions, order, occludes, sketch.superpixel_region, pair_gap)
 
 
 def _model_at_processing(

@@ -12,6 +12,10 @@ disocclusion) cannot move the region.
 Occluding contours: the windows around an occluder's edge see the occluder's edge, at the occluder's
 disparity. Every pixel within half a window of a nearer region is therefore warped with that nearer region's
 model and does not count for its own region (it counts for the occluder only if it is the occluder's).
+Whatever the order, a pixel within half a window of its region's boundary has a window that mixes the region
+with its neighbour, and its cost minimum lies between their disparities: such pixels weigh a twentieth
+(`surfaces.interior_weights`). On paper-e the green tomato's rim, whose windows saw the wall 11 px behind it,
+had tilted and pulled its plane 0.15 px far (its depth 4 mm, 11 %); with its interior voting it is 0.01 px off.
 
 Two passes: offsets `coarse_step_px` apart over +-`search_px`, then `fine_step_px` apart around each region's
 first-pass correction.
@@ -144,7 +148,8 @@ def refine_regions(
     owner = _owners(labels, np.where(np.isfinite(levels), levels, np.inf), reach)
     clear = owner == labels
     feature_planes = [np.moveaxis(bands[b], 0, -1) for b in range(bands.shape[0])]
-    weights = np.where(clear, texture_energy(feature_planes, params.window_px), 0.0).astype(np.float32)
+    texture = texture_energy(feature_planes, params.window_px) * interior_weights(labels, reach)
+    weights = np.where(clear, texture, 0.0).astype(np.float32)
     cells_x = (w + params.cell_px - 1) // params.cell_px
     cell = (np.arange(h)[:, None] // params.cell_px) * cells_x + np.arange(w)[None, :] // params.cell_px
     n_cells = int(cell.max()) + 1

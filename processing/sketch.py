@@ -5,8 +5,10 @@ their shared boundary (within `continuity_px`) and whose colours are alike belon
 smaller than `min_region_fraction` of the image join the neighbour they meet most continuously. A chain of
 superpixels that lean across a depth step the dense disparity smoothed (two overlapping cards of one colour) can
 join two objects with every link continuous; such a region's pixel levels fall into two groups with few between,
-and it splits at that dip (`split_dip`: the levels within continuity_px / 2 of it hold less than that share of
-either side's band of the same width; an evenly slanted surface has no dip however wide). Each region
+and it splits at that valley (`split_valley`: the histogram of its levels, smoothed at a quarter of
+`continuity_px`, falls below that share of the lower of the peaks either side) when each side is one level
+(the sketch's layers; a slanted floor with an object on it has a valley at the object's levels, but two slopes
+either side of it). Each region
 gets a robust plane fitted to the surface disparity (slanted objects keep their slant) and a representative
 disparity at its centroid. Where two regions meet, the one with the smaller disparity along the boundary is
 nearer and occludes the other (T-junctions and depth steps alike); the order is nearest first.
@@ -29,7 +31,7 @@ class SketchParams:
     continuity_px: float = 0.6  # neighbouring regions whose planes meet within this (mean over the boundary) join
     colour_distance: float = 0.35  # ... when their mean display colours are at most this far apart
     same_depth_px: float = 0.0  # then regions whose planes meet within this join whatever their colours (0: off)
-    split_dip: float = 0.3  # a region whose pixel levels dip below this share of either side splits (0: off)
+    split_valley: float = 0.3  # a region whose pixel levels' valley is below this share of its peaks splits (0: off)
     split_fraction: float = 0.01  # ... into parts of at least this fraction of the image
     min_region_fraction: float = 0.002  # smaller regions join a neighbour
     sliver_fraction: float = 0.01  # a region smaller than this ...
@@ -176,41 +178,44 @@ def _merge_continuous(surfaces: Surfaces, abs_gaps: np.ndarray, params: SketchPa
     return np.array([sets.find(i) for i in range(count)])
 
 
-def _level_dip(levels: np.ndarray, weights: np.ndarray, half_px: float, min_mass: float) -> tuple[float, float]:
-    """The deepest dip of the weighted level distribution: (mass within `half_px` of t over the smaller mass
-    in the `2 half_px` bands either side of that, t), over t every `half_px / 4` with at least `min_mass` on
-    each side; (inf, nan) when there is none. Density-relative, so an evenly spread (slanted) surface has no
-    dip however wide its range."""
-    order = np.argsort(levels)
-    sorted_levels = levels[order]
-    cum = np.concatenate([[0.0], np.cumsum(weights[order])])
-
-    def mass(low: float, high: float) -> float:
-        return float(cum[np.searchsorted(sorted_levels, high)] - cum[np.searchsorted(sorted_levels, low)])
-
-    best = (np.inf, float("nan"))
-    for t in np.arange(sorted_levels[0], sorted_levels[-1], 0.25 * half_px):
-        below = mass(-np.inf, t)
-        if below < min_mass or cum[-1] - below < min_mass:
-            continue
-        side = min(mass(t - 3 * half_px, t - half_px), mass(t + half_px, t + 3 * half_px))
-        if side > 0:
-            ratio = mass(t - half_px, t + half_px) / side
-            if ratio < best[0]:
-                best = (ratio, float(t))
-    return best
+def _level_valley(levels: np.ndarray, min_mass: float, smooth_px: float, bin_px: float = 0.05) -> tuple[float, float]:
+    """The deepest valley of the distribution of `levels` (a histogram of `bin_px` bins smoothed by a Gaussian of
+    `smooth_px`): (its height over the lower of the highest peaks on either side, its level), over the levels
+    with at least `min_mass` values on each side; (inf, nan) when there is none. An evenly spread (slanted)
+    surface, or a plateau beside a peak, has no valley (ratio 1) however wide its range."""
+    low, high = float(levels.min()), float(levels.max())
+    pad = int(np.ceil(3.0 * smooth_px / bin_px))
+    bins = int(np.ceil((high - low) / bin_px)) + 1
+    counts = np.bincount(np.minimum(((levels - low) / bin_px).astype(np.int64), bins - 1), minlength=bins)
+    taps = np.exp(-0.5 * (np.arange(-pad, pad + 1) * bin_px / smooth_px) ** 2)
+    smooth = np.convolve(np.pad(counts.astype(np.float64), pad), taps / taps.sum(), mode="valid")
+    below = np.cumsum(counts)
+    peak_before = np.maximum.accumulate(smooth)
+    peak_after = np.maximum.accumulate(smooth[::-1])[::-1]
+    ok = (below >= min_mass) & (below[-1] - below >= min_mass)
+    ok[-1] = False
+    if not ok.any():
+        return np.inf, float("nan")
+    ratio = np.where(ok, smooth / np.maximum(np.minimum(peak_before, peak_after), 1e-12), np.inf)
+    i = int(np.argmin(ratio))
+    return float(ratio[i]), low + (i + 1) * bin_px
 
 
-def _split_at_dips(surfaces: Surfaces, disparity: np.ndarray, root: np.ndarray, params: SketchParams) -> np.ndarray:
+def _split_at_valleys(surfaces: Surfaces, disparity: np.ndarray, root: np.ndarray, params: SketchParams) -> np.ndarray:
     """Regions whose pixels' levels fall into two groups with few between (two objects at different depths that
-    a chain of superpixels leaning across the depth step joined) split at the dip, repeatedly: the superpixels
-    whose mean level lies beyond it form a new region."""
+    a chain of superpixels leaning across the depth step joined) split at the valley, repeatedly: the
+    superpixels whose mean level lies beyond it form a new region. Only when each group is one level (within
+    half of `continuity_px`, RMS), the layers of the 2.1D sketch: a slanted floor with an object standing on it
+    has fewer floor pixels at the object's levels (a valley), but its two sides are slopes, not levels, and it
+    stays one region."""
     flat = surfaces.labels.ravel()
     values = disparity.ravel().astype(np.float64)
+    level_px = 0.5 * params.continuity_px
     areas = surfaces.areas.astype(np.float64)
     levels = np.bincount(flat, values, surfaces.count) / np.maximum(areas, 1.0)
     min_mass = params.split_fraction * float(flat.size)
     root = root.copy()
+    pixel_root = root[flat]
     queue = [int(r) for r in np.unique(root)]
     next_id = int(root.max()) + 1
     while queue:
@@ -218,13 +223,50 @@ def _split_at_dips(surfaces: Surfaces, disparity: np.ndarray, root: np.ndarray, 
         members = np.nonzero(root == r)[0]
         if areas[members].sum() < 2 * min_mass:
             continue
-        inside = np.isin(flat, members)
-        ratio, t = _level_dip(values[inside], np.ones(int(inside.sum())), 0.5 * params.continuity_px, min_mass)
-        if ratio < params.split_dip:
+        inside = np.nonzero(pixel_root == r)[0]
+        region_values = values[inside]
+        ratio, t = _level_valley(region_values, min_mass, 0.25 * params.continuity_px)
+        if ratio >= params.split_valley:
+            continue
+        part = levels[flat[inside]] > t  # the pixels of the superpixels beyond the valley
+        if max(_level_spread_px(region_values[part]), _level_spread_px(region_values[~part])) <= level_px:
             root[members[levels[members] > t]] = next_id
+            pixel_root[inside[part]] = next_id
             queue += [r, next_id]
             next_id += 1
     return root
+
+
+def _level_spread_px(values: np.ndarray) -> float:
+    """Root-mean-square distance of `values` from their median: how far a part is from being one level."""
+    return float(np.sqrt(np.mean((values - np.median(values)) ** 2)))
+
+
+def plane_occlusions(
+    labels: np.ndarray, regions: list[SketchRegion], margin_px: float
+) -> tuple[dict[int, list[int]], dict[tuple[int, int], float]]:
+    """Who occludes whom, from the regions' own planes: along each shared boundary of `labels` (ids 1..L) the
+    mean signed gap P_j - P_i of the pair (i < j), and i occludes j where it exceeds `margin_px` (j occludes i
+    below -margin_px). The refined planes are precise to a few hundredths of a pixel where the superpixels
+    along a boundary lean across it (`build_sketch` decides on those first)."""
+    lo, hi, px, py = boundary_edges(labels)
+    count = int(labels.max()) + 1
+    planes = np.zeros((count, 3))
+    for r in regions:
+        planes[r.id] = r.plane
+    gap = (planes[hi, 0] - planes[lo, 0]) * px + (planes[hi, 1] - planes[lo, 1]) * py + planes[hi, 2] - planes[lo, 2]
+    keys, index = np.unique(lo * count + hi, return_inverse=True)
+    mean = np.bincount(index, gap, keys.size) / np.bincount(index, minlength=keys.size)
+    occludes: dict[int, list[int]] = {r.id: [] for r in regions}
+    pair_gap: dict[tuple[int, int], float] = {}
+    for key, value in zip(keys, mean, strict=True):
+        i, j = int(key // count), int(key % count)
+        pair_gap[(i, j)] = float(value)
+        if value > margin_px:
+            occludes[i].append(j)
+        elif value < -margin_px:
+            occludes[j].append(i)
+    return {k: sorted(v) for k, v in occludes.items()}, pair_gap
 
 
 class _UnionFind:
@@ -249,8 +291,8 @@ def build_sketch(
     `disparity` (H, W) is the surface disparity on the analysis grid, `confidence` the dense confidence."""
     gaps, abs_gaps = _boundary_gaps(surfaces)
     root = _merge_continuous(surfaces, abs_gaps, params)
-    if params.split_dip > 0:
-        root = _split_at_dips(surfaces, disparity, root, params)
+    if params.split_valley > 0:
+        root = _split_at_valleys(surfaces, disparity, root, params)
     roots, superpixel_region = np.unique(root, return_inverse=True)
     superpixel_region = (superpixel_region + 1).astype(np.int32)
     labels = superpixel_region[surfaces.labels]

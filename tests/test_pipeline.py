@@ -217,10 +217,11 @@ def test_paper_g_slanted_knife_is_one_plane():
 def test_paper_c_blocks_of_one_colour_30_mm_apart_are_two_regions():
     """paper-c's blocks E (+60 mm) and F (+90 mm) overlap and share a colour; the dense disparity smooths the
     1 analysis px step between them into superpixels that lean across it, and the merge alone made them one
-    region read at +71.8 mm. The sketch's split at the dip of the region's levels keeps them apart (full size,
-    as `mca evaluate`)."""
+    region read at +71.8 mm. The sketch's split at the valley of the region's levels keeps them apart, and the
+    refined planes say which block lies over which (full size, as `mca evaluate`)."""
     evaluation, _ = _evaluate_paper_scene("paper-c", 1.0)
     assert evaluation.region_count == evaluation.true_region_count == 7  # six blocks and the wall
+    assert evaluation.order_correct, evaluation.notes  # each block over the next, 30 mm (1 analysis px) apart
     rows = {r.label: r for r in evaluation.rows}
     assert rows["E"].rel_error("ours") < 0.03 and rows["F"].rel_error("ours") < 0.03  # 1.2 % and 0.3 %
 

@@ -134,3 +134,36 @@ def test_pixels_within_reach_of_a_nearer_region_are_its_own():
     assert np.all(owner[10:, 20:23] == 1) and np.all(owner[13:, 23:] == 2)  # 3 px to the right of region 1
     assert np.all(owner[7:10, :20] == 1) and np.all(owner[7:10, 23:] == 2)  # 3 px above region 1 and 2
     assert np.all(owner[:7, 23:] == 3)
+
+
+def _card_before_a_busy_wall():
+    """A faintly textured card (+1.5 px) well in front of a wall of strong texture (+12 px): along the card's
+    edge its windows see the wall, whose misaligned texture pulls their cost minimum towards the wall."""
+    shape = (240, 320)
+    card = np.zeros(shape, np.float32)
+    card[60:180, 80:240] = 1
+    image = render_layers(
+        [
+            (texture(shape, 21, (0.5, 0.5, 0.45), blur_px=1.2, contrast=0.6), np.ones(shape, np.float32), 12.0),
+            (texture(shape, 22, (0.3, 0.55, 0.3), blur_px=2.5, contrast=0.12), card, 1.5),
+        ],
+        shape,
+        APERTURE,
+    )
+    labels = np.where(card > 0, 1, 2).astype(np.int32)
+    model = np.where(card > 0, 1.5 + 0.3, 12.0 + 0.3).astype(np.float32)  # the surfaces were 0.3 px far
+    return image, labels, model
+
+
+def test_a_card_before_a_busy_wall_is_refined_by_its_interior(monkeypatch):
+    image, labels, model = _card_before_a_busy_wall()
+    bands = bands_of(image)
+    result = refine_regions(bands, APERTURE, labels, model, RefineParams(), fronto_parallel={1, 2})
+    error = abs(float(np.median(result.disparity_px[labels == 1])) - 1.5)
+    assert error < 0.05, error
+    # the rim at full weight: what the region refinement did before, visibly worse
+    import mca.processing.refine as refine
+
+    monkeypatch.setattr(refine, "interior_weights", lambda labels, margin: np.ones(labels.shape, np.float32))
+    rims = refine_regions(bands, APERTURE, labels, model, RefineParams(), fronto_parallel={1, 2})
+    assert abs(float(np.median(rims.disparity_px[labels == 1])) - 1.5) > 2 * error

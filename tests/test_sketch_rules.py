@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mca.processing.sketch import SketchParams, _level_dip, build_sketch
+from mca.processing.sketch import SketchParams, SketchRegion, _level_valley, build_sketch, plane_occlusions
 from mca.processing.surfaces import Surfaces
 
 GREY = (0.5, 0.5, 0.5)
@@ -206,7 +206,7 @@ def _cards_joined_by_a_leaning_superpixel(card_px: int = 100, ramp_px: int = 10)
 
 def test_two_cards_bridged_by_a_leaning_superpixel_split_at_the_dip_of_their_levels():
     surfaces = _cards_joined_by_a_leaning_superpixel()
-    assert len(sketch(surfaces, SketchParams(split_dip=0.0)).regions) == 1  # the merge alone chains them
+    assert len(sketch(surfaces, SketchParams(split_valley=0.0)).regions) == 1  # the merge alone chains them
     s = sketch(surfaces)
     assert len(s.regions) == 2
     levels = sorted(r.disparity_px for r in s.regions)
@@ -220,20 +220,46 @@ def test_a_slanted_floor_of_many_superpixels_has_no_dip_and_stays_one_region():
     surfaces = surfaces_of(labels, {}, dict.fromkeys(range(30), GREY))
     surfaces.planes[:] = (0.04, 0.0, 1.0)  # 12 px of disparity across the floor, one plane
     surfaces.fitted[:] = surfaces.planes
-    s = sketch(surfaces, SketchParams(split_dip=0.9))
+    s = sketch(surfaces, SketchParams(split_valley=0.9))
     assert len(s.regions) == 1 and s.regions[0].slanted
 
 
+def test_level_valley_of_two_groups_with_few_between():
+    rng = np.random.default_rng(0)
+    levels = np.concatenate([rng.normal(2.0, 0.03, 4000), rng.uniform(2.0, 3.0, 400), rng.normal(3.0, 0.03, 4000)])
+    ratio, at = _level_valley(levels, 1000.0, 0.15)
+    assert ratio < 0.1 and 2.3 < at < 2.7
+    # the ramp between them as heavy as either group: no valley worth the name
+    levels = np.concatenate([rng.normal(2.0, 0.03, 4000), rng.uniform(2.0, 3.0, 12000), rng.normal(3.0, 0.03, 4000)])
+    assert _level_valley(levels, 1000.0, 0.15)[0] > 0.3
+
+
 @pytest.mark.parametrize(
-    ("levels", "weights", "dip"),
+    "levels",
     [
-        ([1.0, 1.0, 1.5, 2.0, 2.0], [10, 10, 1, 10, 10], (0.05, 1.5)),  # two groups, one between: 1 / 20
-        (list(np.linspace(0.0, 5.0, 101)), [1] * 101, None),  # evenly spread: no dip
+        np.linspace(0.0, 12.0, 20000),  # an evenly slanted surface
+        np.concatenate([np.linspace(0.0, 3.0, 6000), np.full(20000, 3.0)]),  # a floor running into a wall
     ],
 )
-def test_level_dip(levels, weights, dip):
-    ratio, t = _level_dip(np.array(levels), np.array(weights, float), 0.3, 5.0)
-    if dip is None:
-        assert ratio > 0.8
-    else:
-        assert ratio == pytest.approx(dip[0], abs=0.01) and abs(t - dip[1]) <= 0.2
+def test_level_valley_sees_none_in_a_slope_or_a_plateau_beside_a_peak(levels):
+    assert _level_valley(levels, 1000.0, 0.15)[0] > 0.8
+
+
+def test_level_valley_needs_the_minimum_mass_on_both_sides():
+    levels = np.concatenate([np.full(500, 1.0), np.full(5000, 3.0)])
+    assert _level_valley(levels, 1000.0, 0.15)[0] == np.inf
+    assert _level_valley(levels, 100.0, 0.15)[0] < 0.01
+
+
+def test_plane_occlusions_come_from_the_regions_own_planes():
+    labels = np.ones((40, 90), np.int32)
+    labels[:, 30:60] = 2
+    labels[:, 60:] = 3
+    regions = [
+        SketchRegion(1, 1200, (0.0, 0.0, 2.0), False, (14.5, 19.5), 2.0, 0.8),
+        SketchRegion(2, 1200, (0.0, 0.0, 3.0), False, (44.5, 19.5), 3.0, 0.8),  # 1 px behind region 1
+        SketchRegion(3, 1200, (0.01, 0.0, 2.6), True, (74.5, 19.5), 3.345, 0.8),  # meets 2 at 3.195 px
+    ]
+    occludes, gaps = plane_occlusions(labels, regions, 0.5)
+    assert occludes == {1: [2], 2: [], 3: []}  # 2 and 3 are 0.2 px apart along their boundary: neither
+    assert gaps[(1, 2)] == pytest.approx(1.0) and gaps[(2, 3)] == pytest.approx(0.195, abs=1e-9)
