@@ -107,9 +107,11 @@ def test_glb_camera_and_result_json_intrinsics_are_the_photographs(capture, docu
     slanted = {r["id"] for r in document["regions"] if r["slant"]}
     region = labels[v, u]
     flat = ~np.isin(region, list(slanted))
-    # within the relief of a fronto-parallel region about its distance (the dense depth varies inside a region)
+    # within the relief of a fronto-parallel region about its distance: the dense depth varies inside a region,
+    # at this 0.15 scale by a few tenths of a per cent (the wall 1511-1523 mm about 1517 mm, 5th-95th
+    # percentile), while a point projected onto the wrong region would be off by the regions' separation (2 %+)
     relief = np.abs(points[flat, 2] / np.array([distance[i] for i in region[flat]]) - 1)
-    assert np.median(relief) < 2e-3 and np.mean(relief < 1e-2) > 0.95
+    assert np.median(relief) < 5e-3 and np.mean(relief < 1e-2) > 0.95
     # and exactly the depth map's value at the pixel it projects to
     depth = tifffile.imread(capture.out_dir / "depth.tiff")
     if depth.shape == labels.shape:
