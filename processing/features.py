@@ -148,6 +148,8 @@ def _log_noise(coefficients: tuple[float, float], y: np.ndarray) -> np.ndarray:
 def _photon_read_curve(levels: np.ndarray, variances: np.ndarray) -> tuple[float, float]:
     """(A, B) >= 0 of `_log_noise` fitted to the brightness bins' variances in relative terms; texture only
     raises a bin, so bins more than 1.5 times above the curve are dropped and it is fitted again."""
+    from scipy.optimize import nnls  # imported here, as in `processing.calibration`: not on every start-up
+
     design = np.stack([np.expm1(levels), np.ones_like(levels)], axis=1) * np.exp(-2.0 * levels)[:, None]
     keep = variances > 0
     coefficients = (0.0, 0.0)
@@ -155,29 +157,14 @@ def _photon_read_curve(levels: np.ndarray, variances: np.ndarray) -> tuple[float
         if np.count_nonzero(keep) < 2:
             break
         weight = 1.0 / variances[keep]
-        coefficients = _nonnegative_lstsq(design[keep] * weight[:, None], variances[keep] * weight)
+        solution = nnls(design[keep] * weight[:, None], variances[keep] * weight)[0]
+        coefficients = (float(solution[0]), float(solution[1]))
         fitted = design @ np.array(coefficients)
         again = (variances > 0) & (variances <= 1.5 * fitted)
         if np.array_equal(again, keep):
             break
         keep = again
     return coefficients
-
-
-def _nonnegative_lstsq(design: np.ndarray, target: np.ndarray) -> tuple[float, float]:
-    """Least squares of two non-negative coefficients: both free, else the better of each alone."""
-    both = np.linalg.lstsq(design, target, rcond=None)[0]
-    if both[0] >= 0.0 and both[1] >= 0.0:
-        return float(both[0]), float(both[1])
-    best, best_error = (0.0, 0.0), float(np.sum(target * target))
-    for k in range(2):
-        column = design[:, k]
-        norm = float(column @ column)
-        value = max(float(column @ target) / norm, 0.0) if norm > 0 else 0.0
-        error = float(np.sum((target - value * column) ** 2))
-        if error < best_error:
-            best, best_error = ((value, 0.0) if k == 0 else (0.0, value)), error
-    return best
 
 
 _CHI2_16_Q10 = 0.58201  # the 10th percentile of a chi-square with 16 degrees of freedom, over 16

@@ -346,8 +346,7 @@ def _refine_stage(run: _Run) -> None:
         run.refinement = refine_regions(
             run.inputs.stacked, run.aperture, run.sketch.labels, run.surface_disparity, refine, noise=noise
         )
-    sketch_params = run.params.sketch
-    run.sketch = _refined_sketch(run.sketch, run.refinement, sketch_params.slant_px, sketch_params.occlusion_margin_px)
+    run.sketch = _refined_sketch(run.sketch, run.refinement, run.params.sketch.occlusion_margin_px)
     run.recorder.record(
         "refine",
         disparity_px={r.id: r.disparity_px * run.to_input for r in run.sketch.regions},
@@ -451,7 +450,7 @@ def _no_refinement(sketch: Sketch, disparity: np.ndarray) -> Refinement:
     return Refinement(disparity, dict.fromkeys(ids), dict.fromkeys(ids, (0.0, 0.0, 0.0)), dict.fromkeys(ids, 0.0))
 
 
-def _refined_sketch(sketch: Sketch, refinement: Refinement, slant_px: float, margin_px: float) -> Sketch:
+def _refined_sketch(sketch: Sketch, refinement: Refinement, margin_px: float) -> Sketch:
     """The sketch's regions with their refined planes (planar regions) or shifted levels (curved ones), and the
     occlusions those planes make along the region boundaries (`sketch.plane_occlusions`)."""
     regions = []

@@ -76,6 +76,23 @@ class Sketch:
         raise KeyError(region_id)
 
 
+def _edge_gaps(planes: np.ndarray, lo: np.ndarray, hi: np.ndarray, px: np.ndarray, py: np.ndarray) -> np.ndarray:
+    """P_hi - P_lo at each boundary edge's midpoint (px, py), planes[k] = (a, b, c) of label k."""
+    return (planes[hi, 0] - planes[lo, 0]) * px + (planes[hi, 1] - planes[lo, 1]) * py + planes[hi, 2] - planes[lo, 2]
+
+
+def _occlusions(pair_gap: dict[tuple[int, int], float], ids: list[int], margin_px: float) -> dict[int, list[int]]:
+    """id -> the ids it occludes: of each pair (i, j) with mean gap P_j - P_i, i occludes j beyond `margin_px`
+    and j occludes i below -margin_px."""
+    occludes: dict[int, list[int]] = {i: [] for i in ids}
+    for (i, j), mean in pair_gap.items():
+        if mean > margin_px:
+            occludes[i].append(j)
+        elif mean < -margin_px:
+            occludes[j].append(i)
+    return {k: sorted(v) for k, v in occludes.items()}
+
+
 def _boundary_gaps(surfaces: Surfaces) -> tuple[np.ndarray, np.ndarray]:
     """Signed and absolute mean (P_j - P_i) of each adjacent superpixel pair (i, j) over their shared boundary."""
     planes = surfaces.planes
@@ -84,7 +101,7 @@ def _boundary_gaps(surfaces: Surfaces) -> tuple[np.ndarray, np.ndarray]:
     key = lo * count + hi
     pair_keys = surfaces.pairs[:, 0] * count + surfaces.pairs[:, 1]
     index = np.searchsorted(pair_keys, key)
-    gap = (planes[hi, 0] - planes[lo, 0]) * px + (planes[hi, 1] - planes[lo, 1]) * py + planes[hi, 2] - planes[lo, 2]
+    gap = _edge_gaps(planes, lo, hi, px, py)
     counts = np.maximum(np.bincount(index, minlength=pair_keys.size), 1)
     return np.bincount(index, gap, pair_keys.size) / counts, np.bincount(index, np.abs(gap), pair_keys.size) / counts
 
@@ -254,19 +271,10 @@ def plane_occlusions(
     planes = np.zeros((count, 3))
     for r in regions:
         planes[r.id] = r.plane
-    gap = (planes[hi, 0] - planes[lo, 0]) * px + (planes[hi, 1] - planes[lo, 1]) * py + planes[hi, 2] - planes[lo, 2]
     keys, index = np.unique(lo * count + hi, return_inverse=True)
-    mean = np.bincount(index, gap, keys.size) / np.bincount(index, minlength=keys.size)
-    occludes: dict[int, list[int]] = {r.id: [] for r in regions}
-    pair_gap: dict[tuple[int, int], float] = {}
-    for key, value in zip(keys, mean, strict=True):
-        i, j = int(key // count), int(key % count)
-        pair_gap[(i, j)] = float(value)
-        if value > margin_px:
-            occludes[i].append(j)
-        elif value < -margin_px:
-            occludes[j].append(i)
-    return {k: sorted(v) for k, v in occludes.items()}, pair_gap
+    mean = np.bincount(index, _edge_gaps(planes, lo, hi, px, py), keys.size) / np.bincount(index, minlength=keys.size)
+    pair_gap = {(int(key // count), int(key % count)): float(value) for key, value in zip(keys, mean, strict=True)}
+    return _occlusions(pair_gap, [r.id for r in regions], margin_px), pair_gap
 
 
 class _UnionFind:
@@ -348,15 +356,8 @@ def build_sketch(
         entry = region_gap.setdefault(key, [0.0, 0.0])
         entry[0] += signed * length
         entry[1] += length
-    occludes: dict[int, list[int]] = {r.id: [] for r in regions}
-    pair_gap = {}
-    for (ri, rj), (weighted, length) in region_gap.items():
-        mean = weighted / max(length, 1e-9)
-        pair_gap[(ri, rj)] = mean
-        if mean > params.occlusion_margin_px:
-            occludes[ri].append(rj)
-        elif mean < -params.occlusion_margin_px:
-            occludes[rj].append(ri)
+    pair_gap = {key: weighted / max(length, 1e-9) for key, (weighted, length) in region_gap.items()}
+    occludes = _occlusions(pair_gap, [r.id for r in regions], params.occlusion_margin_px)
     ranked = sorted(regions, key=lambda r: r.disparity_px)
     order = {r.id: rank for rank, r in enumerate(ranked)}
-    return Sketch(labels, regions, order, {k: sorted(v) for k, v in occludes.items()}, superpixel_region, pair_gap)
+    return Sketch(labels, regions, order, occludes, superpixel_region, pair_gap)
