@@ -39,7 +39,7 @@ import numba as nb
 import numpy as np
 
 from mca.processing.camera import CHANNELS, FilterAperture
-from mca.processing.features import FeatureNoise, feature_bands, feature_noise
+from mca.processing.features import FeatureNoise, feature_bands, feature_noise, log_compress
 
 
 def channel_shifts(aperture: FilterAperture) -> np.ndarray:
@@ -143,12 +143,19 @@ def _sample_row_bilinear(src: np.ndarray, y: int, sx: float, sy: float, out: np.
             xa = min(max(x + ix, 0), w - 1)
             xb = min(max(x + ix + 1, 0), w - 1)
             out[x] = a * src[y0, xa] + b * src[y0, xb] + c * src[y1, xa] + d * src[y1, xb]
+    n = hi + 1 - lo
+    if n <= 0:
+        return
+    # The inside on slices indexed from 0, so that the compiler sees no negative index and vectorises the loop.
+    inside = out[lo : hi + 1]
+    top = src[y0, lo + ix : lo + ix + n + 1]
+    bottom = src[y1, lo + ix : lo + ix + n + 1]
     if ty == 0.0:
-        for x in range(lo, hi + 1):
-            out[x] = (1.0 - tx) * src[y0, x + ix] + tx * src[y0, x + ix + 1]
+        for i in range(n):
+            inside[i] = (1.0 - tx) * top[i] + tx * top[i + 1]
     else:
-        for x in range(lo, hi + 1):
-            out[x] = a * src[y0, x + ix] + b * src[y0, x + ix + 1] + c * src[y1, x + ix] + d * src[y1, x + ix + 1]
+        for i in range(n):
+            inside[i] = a * top[i] + b * top[i + 1] + c * bottom[i] + d * bottom[i + 1]
 
 
 @nb.njit(cache=True, fastmath=True, inline="always")
@@ -161,6 +168,37 @@ def _sample_row_shifted(
         _sample_row(src, y, sx, sy, out, tmp)
     else:
         _sample_row_bilinear(src, y, sx, sy, out)
+
+
+@nb.njit(cache=True, fastmath=True, inline="always")
+def _row_taps(
+    h: int, w: int, y: int, disparity_row: np.ndarray, sx: float, sy: float, at: np.ndarray, frac: np.ndarray
+):
+    """The bilinear taps of row y shifted by d(x) (sx, sy), clamped as `_bilinear` clamps: at[0..3, x] = y0, x0,
+    y1, x1 and frac[0..1, x] = fx, fy. Made once per channel and row, used for every band."""
+    for x in range(w):
+        dd = disparity_row[x]
+        px = min(max(x + dd * sx, 0.0), w - 1.0)
+        py = min(max(y + dd * sy, 0.0), h - 1.0)
+        x0 = int(px)
+        y0 = int(py)
+        at[0, x] = y0
+        at[1, x] = x0
+        at[2, x] = min(y0 + 1, h - 1)
+        at[3, x] = min(x0 + 1, w - 1)
+        frac[0, x] = px - x0
+        frac[1, x] = py - y0
+
+
+@nb.njit(cache=True, fastmath=True, inline="always")
+def _gather_row(src: np.ndarray, at: np.ndarray, frac: np.ndarray, out: np.ndarray) -> None:
+    """out[x] = `_bilinear` of src at the taps of `_row_taps`."""
+    for x in range(out.shape[0]):
+        y0, x0, y1, x1 = at[0, x], at[1, x], at[2, x], at[3, x]
+        fx, fy = frac[0, x], frac[1, x]
+        top = src[y0, x0] * (1.0 - fx) + src[y0, x1] * fx
+        bottom = src[y1, x0] * (1.0 - fx) + src[y1, x1] * fx
+        out[x] = top * (1.0 - fy) + bottom * fy
 
 
 @nb.njit(cache=True, fastmath=True, inline="always")
@@ -265,10 +303,10 @@ def _cost_map(bands, shifts, d, disparity, radius, eps, out, bspline, variance, 
     ring = np.zeros((win, 6, w), np.float32)
     col = np.zeros((6, w), np.float32)
     box = np.empty((6, w), np.float32)
-    rr = np.empty(w, np.float32)
-    gg = np.empty(w, np.float32)
-    bb = np.empty(w, np.float32)
+    samples = np.empty((nbands, 3, w), np.float32)
     tmp = np.empty(w, np.float32)
+    taps = np.empty((3, 4, w), np.int64)  # per-pixel bilinear sampling: each channel's taps, shared by the bands
+    fractions = np.empty((3, 2, w))
     per_pixel = disparity.shape[0] > 0
     noisy = variance.shape[0] > 0
     uniform = np.zeros(3)
@@ -286,28 +324,35 @@ def _cost_map(bands, shifts, d, disparity, radius, eps, out, bspline, variance, 
                 for x in range(w):
                     col[c, x] -= ring[slot, c, x]
         if y < h:
-            for c in range(6):
-                for x in range(w):
-                    ring[slot, c, x] = 0.0
+            if per_pixel and not bspline:
+                for c in range(3):
+                    _row_taps(h, w, y, disparity[y], shifts[c, 0], shifts[c, 1], taps[c], fractions[c])
             for b in range(nbands):
-                if per_pixel:
-                    _sample_row_map(bands[b, 0], y, disparity[y], shifts[0, 0], shifts[0, 1], rr, bspline)
-                    _sample_row_map(bands[b, 1], y, disparity[y], shifts[1, 0], shifts[1, 1], gg, bspline)
-                    _sample_row_map(bands[b, 2], y, disparity[y], shifts[2, 0], shifts[2, 1], bb, bspline)
-                else:
-                    _sample_row_shifted(bands[b, 0], y, d * shifts[0, 0], d * shifts[0, 1], rr, tmp, bspline)
-                    _sample_row_shifted(bands[b, 1], y, d * shifts[1, 0], d * shifts[1, 1], gg, tmp, bspline)
-                    _sample_row_shifted(bands[b, 2], y, d * shifts[2, 0], d * shifts[2, 1], bb, tmp, bspline)
+                for c in range(3):
+                    if per_pixel and not bspline:
+                        _gather_row(bands[b, c], taps[c], fractions[c], samples[b, c])
+                    elif per_pixel:
+                        _sample_row_map(
+                            bands[b, c], y, disparity[y], shifts[c, 0], shifts[c, 1], samples[b, c], bspline
+                        )
+                    else:
+                        _sample_row_shifted(
+                            bands[b, c], y, d * shifts[c, 0], d * shifts[c, 1], samples[b, c], tmp, bspline
+                        )
+            products = ring[slot]
+            for b in range(nbands):
+                rr, gg, bb = samples[b, 0], samples[b, 1], samples[b, 2]
+                first = b == 0
                 for x in range(w):
-                    ring[slot, 0, x] += rr[x] * rr[x]
-                    ring[slot, 1, x] += gg[x] * gg[x]
-                    ring[slot, 2, x] += bb[x] * bb[x]
-                    ring[slot, 3, x] += rr[x] * gg[x]
-                    ring[slot, 4, x] += rr[x] * bb[x]
-                    ring[slot, 5, x] += gg[x] * bb[x]
+                    products[0, x] = (0.0 if first else products[0, x]) + rr[x] * rr[x]
+                    products[1, x] = (0.0 if first else products[1, x]) + gg[x] * gg[x]
+                    products[2, x] = (0.0 if first else products[2, x]) + bb[x] * bb[x]
+                    products[3, x] = (0.0 if first else products[3, x]) + rr[x] * gg[x]
+                    products[4, x] = (0.0 if first else products[4, x]) + rr[x] * bb[x]
+                    products[5, x] = (0.0 if first else products[5, x]) + gg[x] * bb[x]
             if noisy:
                 for c in range(3):
-                    row = disparity[y] if per_pixel else rr  # rr: a row of the right type, unused
+                    row = disparity[y] if per_pixel else tmp  # tmp: a row of the right type, unused
                     _add_noise_deficit(
                         ring[slot, c],
                         variance[c],
@@ -354,31 +399,10 @@ def _cost_map(bands, shifts, d, disparity, radius, eps, out, bspline, variance, 
 
 
 @nb.njit(cache=True, parallel=True)
-def _volume(
+def _maps(
     bands: np.ndarray,
     shifts: np.ndarray,
     candidates: np.ndarray,
-    radius: int,
-    eps: float,
-    bspline: bool,
-    variance: np.ndarray,
-    gain: np.ndarray,
-    rho: np.ndarray,
-    signal_rho: np.ndarray,
-) -> np.ndarray:
-    _, _, h, w = bands.shape
-    count = candidates.shape[0]
-    out = np.empty((count, h, w), np.float32)
-    none = np.zeros((0, w), np.float32)
-    for k in nb.prange(count):
-        _cost_map(bands, shifts, candidates[k], none, radius, eps, out[k], bspline, variance, gain, rho, signal_rho)
-    return out
-
-
-@nb.njit(cache=True, parallel=True)
-def _at_maps(
-    bands: np.ndarray,
-    shifts: np.ndarray,
     disparities: np.ndarray,
     radius: int,
     eps: float,
@@ -387,13 +411,18 @@ def _at_maps(
     gain: np.ndarray,
     rho: np.ndarray,
     signal_rho: np.ndarray,
-) -> np.ndarray:
-    _, _, h, w = bands.shape
-    count = disparities.shape[0]
-    out = np.empty((count, h, w), np.float32)
-    for k in nb.prange(count):
-        _cost_map(bands, shifts, 0.0, disparities[k], radius, eps, out[k], bspline, variance, gain, rho, signal_rho)
-    return out
+    out: np.ndarray,
+) -> None:
+    """out[k] = the cost map at the scalar candidates[k], or at the per-pixel disparities[k] when `candidates`
+    is empty; one map per thread at a time."""
+    w = bands.shape[3]
+    per_pixel = candidates.shape[0] == 0
+    none = np.zeros((0, w), np.float32)
+    for k in nb.prange(out.shape[0]):
+        if per_pixel:
+            _cost_map(bands, shifts, 0.0, disparities[k], radius, eps, out[k], bspline, variance, gain, rho, signal_rho)
+        else:
+            _cost_map(bands, shifts, candidates[k], none, radius, eps, out[k], bspline, variance, gain, rho, signal_rho)
 
 
 def stack_bands(bands: list[np.ndarray]) -> np.ndarray:
@@ -414,8 +443,9 @@ class CostInput:
 
 def cost_input(planes: np.ndarray, noise_model: bool = True) -> CostInput:
     """The `CostInput` of (H, W, 3) linear planes; the noise model is measured only when `noise_model`."""
-    bands = feature_bands(planes)
-    return CostInput(bands, stack_bands(bands), feature_noise(planes, bands) if noise_model else None)
+    log = log_compress(planes)
+    bands = feature_bands(planes, log=log)
+    return CostInput(bands, stack_bands(bands), feature_noise(planes, bands, log=log) if noise_model else None)
 
 
 SAMPLINGS = ("bspline", "bilinear")
@@ -453,22 +483,34 @@ def cost_volume(
     noise_floor: float,
     sampling: str = "bilinear",
     noise: FeatureNoise | None = None,
+    out: np.ndarray | None = None,
 ) -> np.ndarray:
     """(D, H, W) float32 colour-line cost of every pixel at every candidate disparity (px of these planes).
 
     `bands` (B, 3, H, W) from `stack_bands`; `noise_floor` is the band-pass amplitude treated as flat (it
     regularises the correlations of windows with nothing to align); `sampling` "bspline" or "bilinear" (see
     the module docstring for which to use when); `noise` (`features.feature_noise` of the planes the bands are
-    of) takes out the noise bias of sampling (module docstring)."""
-    return _volume(
-        bands,
-        channel_shifts(aperture),
-        np.asarray(candidates_px, np.float64),
-        int(window_px) // 2,
-        float(noise_floor) ** 2,
-        _check_sampling(sampling),
-        *_noise_arrays(noise, bands),
-    )
+    of) takes out the noise bias of sampling (module docstring); `out`: a (D, H, W) float32 array to fill
+    (a buffer used again), else a new one is made."""
+    candidates = np.asarray(candidates_px, np.float64)
+    shape = (len(candidates),) + bands.shape[2:]
+    if out is None:
+        out = np.empty(shape, np.float32)
+    elif out.shape != shape or out.dtype != np.float32:
+        raise ValueError(f"out must be float32 {shape}, not {out.dtype} {out.shape}")
+    if len(candidates):
+        _maps(
+            bands,
+            channel_shifts(aperture),
+            candidates,
+            np.zeros((1, 1, 1), np.float32),
+            int(window_px) // 2,
+            float(noise_floor) ** 2,
+            _check_sampling(sampling),
+            *_noise_arrays(noise, bands),
+            out,
+        )
+    return out
 
 
 def cost_at(
@@ -487,12 +529,16 @@ def cost_at(
     maps = np.ascontiguousarray(disparity_maps_px, dtype=np.float32)
     if maps.ndim == 2:
         maps = maps[None]
-    return _at_maps(
+    out = np.empty(maps.shape, np.float32)
+    _maps(
         bands,
         channel_shifts(aperture),
+        np.zeros(0),
         maps,
         int(window_px) // 2,
         float(noise_floor) ** 2,
         bspline,
         *_noise_arrays(noise, bands),
+        out,
     )
+    return out

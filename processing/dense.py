@@ -17,7 +17,7 @@ All disparities are of the widest filter pair in pixels of the planes handed in,
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numba as nb
@@ -70,19 +70,24 @@ def _volume_dhw(
     candidates: np.ndarray,
     params: DenseParams,
     given: CostInput | None = None,
+    out: np.ndarray | None = None,
 ) -> np.ndarray:
-    """The (D, H, W) cost volume of `planes`; `given` is their `CostInput` when the caller has it already."""
+    """The (D, H, W) cost volume of `planes`; `given` is their `CostInput` when the caller has it already,
+    `out` a buffer to fill."""
     inputs = given if given is not None else cost_input(planes, params.noise_model)
     if params.noise_model and inputs.noise is None:
         raise ValueError("DenseParams.noise_model is set but the CostInput handed in carries no noise model")
     noise = inputs.noise if params.noise_model else None
     return cost_volume(
-        inputs.stacked, aperture, candidates, params.window_px, params.noise_floor, params.sampling, noise
+        inputs.stacked, aperture, candidates, params.window_px, params.noise_floor, params.sampling, noise, out
     )
 
 
 @nb.njit(cache=True, parallel=True, fastmath=True)
-def _blend_kernel(fine: np.ndarray, coarse: np.ndarray, w_fine: float, w_coarse: float, out: np.ndarray) -> None:
+def _blend_kernel(
+    fine: np.ndarray, coarse: np.ndarray, w_fine: float, w_coarse: float, out: np.ndarray, first: int
+) -> None:
+    """out[y, x, first + d] = w_fine fine[d, y, x] + w_coarse (coarse[d] brought up bilinearly)[y, x]."""
     d_count, h, w = fine.shape
     _, ch, cw = coarse.shape
     sy, sx = ch / h, cw / w
@@ -101,17 +106,41 @@ def _blend_kernel(fine: np.ndarray, coarse: np.ndarray, w_fine: float, w_coarse:
             o = out[y, x]
             for d in range(d_count):
                 up = a * coarse[d, y0, x0] + b * coarse[d, y0, x1] + c * coarse[d, y1, x0] + e * coarse[d, y1, x1]
-                o[d] = w_fine * fine[d, y, x] + w_coarse * up
+                o[first + d] = w_fine * fine[d, y, x] + w_coarse * up
 
 
-def _blend_hwd(fine_dhw: np.ndarray, coarse_dhw: np.ndarray | None, coarse_weight: float) -> np.ndarray:
-    """The (H, W, D) volume the aggregation takes: the fine (D, H, W) volume, averaged with the coarse one
-    brought up bilinearly (pixel centres aligned, as cv2.resize) when there is one; one pass, no temporaries."""
-    if coarse_dhw is None:
-        return np.ascontiguousarray(fine_dhw.transpose(1, 2, 0))
-    out = np.empty(fine_dhw.shape[1:] + fine_dhw.shape[:1], np.float32)
-    total = 1.0 + coarse_weight
-    _blend_kernel(fine_dhw, np.ascontiguousarray(coarse_dhw), 1.0 / total, coarse_weight / total, out)
+_CHUNK = 16  # candidates computed at a time: a (16, H, W) buffer used again, written out 64 bytes per pixel
+
+
+def _cost_hwd(
+    planes: np.ndarray,
+    aperture: FilterAperture,
+    candidates: np.ndarray,
+    params: DenseParams,
+    inputs: CostInput | None = None,
+) -> np.ndarray:
+    """The (H, W, D) volume the aggregation takes: the cost of `planes` at `candidates`, averaged with the cost
+    at half size brought up bilinearly (pixel centres aligned, as cv2.resize; weight `params.coarse_weight`).
+
+    The full-size cost is made `_CHUNK` candidates at a time into one buffer and blended into place: at 20 MP a
+    whole (D, H, W) volume beside the (H, W, D) one would be another quarter of a gigabyte to allocate."""
+    h, w = planes.shape[:2]
+    count = len(candidates)
+    coarse = None
+    if params.coarse_weight > 0 and min(h, w) >= 32:
+        coarse = _volume_dhw(cv2.pyrDown(planes), aperture, candidates / 2.0, params)
+        w_fine, w_coarse = 1.0 / (1.0 + params.coarse_weight), params.coarse_weight / (1.0 + params.coarse_weight)
+    else:
+        coarse = np.zeros((count, 1, 1), np.float32)
+        w_fine, w_coarse = 1.0, 0.0
+    if inputs is None:
+        inputs = cost_input(planes, params.noise_model)  # once, for every chunk
+    out = np.empty((h, w, count), np.float32)
+    buffer = np.empty((min(_CHUNK, count), h, w), np.float32)
+    for first in range(0, count, _CHUNK):
+        last = min(first + _CHUNK, count)
+        fine = _volume_dhw(planes, aperture, candidates[first:last], params, inputs, buffer[: last - first])
+        _blend_kernel(fine, coarse[first:last], w_fine, w_coarse, out, first)
     return out
 
 
@@ -169,8 +198,8 @@ def occupied_range(
     candidates = candidate_disparities((range_px[0] / 4.0, range_px[1] / 4.0), params.step_px)
     if len(candidates) < 4:
         return range_px
-    volume = _volume_dhw(small, aperture, candidates, params)
-    aggregated = aggregate(_blend_hwd(volume, None, 0.0), display_gamma(small).mean(axis=2), params.p1, params.p2)
+    volume = _cost_hwd(small, aperture, candidates, replace(params, coarse_weight=0.0))
+    aggregated = aggregate(volume, display_gamma(small).mean(axis=2), params.p1, params.p2)
     disparity, _ = _winner(aggregated, candidates, _PATHS * params.p2)
     low = float(np.percentile(disparity, 0.2)) * 4.0 - params.range_margin_px - 4.0 * params.step_px
     high = float(np.percentile(disparity, 99.8)) * 4.0 + params.range_margin_px + 4.0 * params.step_px
@@ -187,14 +216,9 @@ def estimate_dense(
     """Dense disparity of (H, W, 3) linear colour planes over `range_px` (px of these planes); `inputs` is the
     planes' `cost.cost_input` when the caller has made it already (it then is not made again)."""
     planes = np.ascontiguousarray(planes, dtype=np.float32)
-    h, w = planes.shape[:2]
     search = occupied_range(planes, aperture, range_px, params) if params.narrow_range else range_px
     candidates = candidate_disparities(search, params.step_px)
-    coarse = None
-    if params.coarse_weight > 0 and min(h, w) >= 32:
-        coarse = _volume_dhw(cv2.pyrDown(planes), aperture, candidates / 2.0, params)
-    volume = _blend_hwd(_volume_dhw(planes, aperture, candidates, params, inputs), coarse, params.coarse_weight)
-    del coarse
+    volume = _cost_hwd(planes, aperture, candidates, params, inputs)
     scale = params.step_px / 0.5  # penalties are given for 0.5 px steps
     aggregated = aggregate(
         volume,

@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import cv2
+import numba as nb
 import numpy as np
 
 LOG_GAIN = 32.0  # log1p(LOG_GAIN * v / white): nearly logarithmic above 3 % of white, linear below
@@ -25,11 +26,15 @@ def log_compress(planes: np.ndarray) -> np.ndarray:
 
 
 def feature_bands(
-    planes: np.ndarray, gradient_sigma_px: float = 0.7, dog_sigmas_px: tuple[float, float] = (0.6, 1.5)
+    planes: np.ndarray,
+    gradient_sigma_px: float = 0.7,
+    dog_sigmas_px: tuple[float, float] = (0.6, 1.5),
+    log: np.ndarray | None = None,
 ) -> list[np.ndarray]:
     """Three (H, W, 3) float32 zero-mean feature planes of linear colour planes: d/dx and d/dy of the
-    log planes smoothed by `gradient_sigma_px`, and their difference of Gaussians at `dog_sigmas_px`."""
-    return _band_filters(log_compress(planes), gradient_sigma_px, dog_sigmas_px)
+    log planes smoothed by `gradient_sigma_px`, and their difference of Gaussians at `dog_sigmas_px`; `log` is
+    `log_compress(planes)` when the caller has it (it is then not made again)."""
+    return _band_filters(log_compress(planes) if log is None else log, gradient_sigma_px, dog_sigmas_px)
 
 
 def _band_filters(log: np.ndarray, gradient_sigma_px: float, dog_sigmas_px: tuple[float, float]) -> list[np.ndarray]:
@@ -69,8 +74,10 @@ def feature_noise(
     bands: list[np.ndarray] | None = None,
     gradient_sigma_px: float = 0.7,
     dog_sigmas_px: tuple[float, float] = (0.6, 1.5),
+    log: np.ndarray | None = None,
 ) -> FeatureNoise:
-    """The noise of `feature_bands(planes, ...)` (`FeatureNoise`); `bands`, if given, must be those planes.
+    """The noise of `feature_bands(planes, ...)` (`FeatureNoise`); `bands`, if given, must be those planes, and
+    `log`, if given, `log_compress(planes)`.
 
     Per channel, the noise of the log plane is measured where it shows least mixed with structure: in the
     diagonal Haar detail (a - b - c + d) / 2 of 2 x 2 blocks, whose variance is the pixel noise variance for
@@ -87,7 +94,7 @@ def feature_noise(
 
     The bands' noise gains and correlations are their filters' response to white noise (their impulse
     response); their signal's correlations are the bands' own, less the noise's share."""
-    log = log_compress(planes)
+    log = log_compress(planes) if log is None else log
     h, w = log.shape[:2]
     variance = np.empty((3, h, w), np.float32)
     for c in range(3):
@@ -98,19 +105,40 @@ def feature_noise(
     signal_rho = np.empty((len(bands), 3, 2, 3))
     for b, band in enumerate(bands):
         for c in range(3):
-            x = band[..., c].astype(np.float64)
-            total = float(np.mean(x * x))
+            total, together = _lag_means(np.ascontiguousarray(band[..., c]))
             noise = float(np.mean(variance[c])) * gain[b]
             signal = total - noise
             for lag in (1, 2, 3):
-                for axis, (ahead, behind) in enumerate(((x[:, lag:], x[:, :-lag]), (x[lag:], x[:-lag]))):
+                for axis in (0, 1):
                     if signal <= 0.1 * total:  # (nearly) nothing but noise: no signal to keep in step with
                         signal_rho[b, c, axis, lag - 1] = rho[b, axis, lag - 1]
                         continue
-                    together = float(np.mean(ahead * behind))
-                    value = (together - rho[b, axis, lag - 1] * noise) / signal
+                    value = (together[axis, lag - 1] - rho[b, axis, lag - 1] * noise) / signal
                     signal_rho[b, c, axis, lag - 1] = min(max(value, -1.0), 1.0)
     return FeatureNoise(variance, gain, rho, signal_rho)
+
+
+@nb.njit(cache=True)
+def _lag_means(x: np.ndarray) -> tuple[float, np.ndarray]:
+    """mean(x^2) of an (H, W) plane, and the mean products x[., j + lag] x[., j] (axis 0: along x) and
+    x[i + lag, .] x[i, .] (axis 1: along y) for lags 1..3, in float64, in one pass."""
+    h, w = x.shape
+    total = 0.0
+    sums = np.zeros((2, 3))
+    for i in range(h):
+        for j in range(w):
+            v = np.float64(x[i, j])
+            total += v * v
+            for lag in range(1, 4):
+                if j + lag < w:
+                    sums[0, lag - 1] += np.float64(x[i, j + lag]) * v
+                if i + lag < h:
+                    sums[1, lag - 1] += np.float64(x[i + lag, j]) * v
+    means = np.zeros((2, 3))
+    for lag in range(1, 4):
+        means[0, lag - 1] = sums[0, lag - 1] / max(h * (w - lag), 1)
+        means[1, lag - 1] = sums[1, lag - 1] / max((h - lag) * w, 1)
+    return total / max(h * w, 1), means
 
 
 def _brightness_noise(log_plane: np.ndarray, bins: int = 24) -> np.ndarray:

@@ -10,7 +10,8 @@ centres of the two filters compared, d_ls lens-to-sensor distance, f focal
 length, M = (d_ls - f)/f the magnification, Δd inter-image (image-side)
 depth, ΔD inter-object (object-side) depth from the focus plane.
 
-All functions accept floats or numpy arrays (elementwise).
+All functions accept floats or numpy arrays (elementwise); those marked `register_jitable` are also called
+from compiled kernels (`processing.depth.depth_map_mm`), the same formulas per pixel.
 """
 
 from __future__ import annotations
@@ -19,17 +20,20 @@ from dataclasses import dataclass
 from typing import TypeVar
 
 import numpy as np
+from numba.extending import register_jitable
 
 from mca.processing.camera import CameraProfile
 
 Value = TypeVar("Value", float, np.ndarray)
 
 
+@register_jitable
 def magnification(sensor_distance_mm: float, focal_length_mm: float) -> float:
     """M = (d_ls - f) / f, the lateral magnification at the focus plane (eq. 8)."""
     return (sensor_distance_mm - focal_length_mm) / focal_length_mm
 
 
+@register_jitable
 def inter_image_depth_mm(disparity_mm: Value, sensor_distance_mm: float, filter_centre_distance_mm: float) -> Value:
     """Δd = δ d_ls / (d_a + δ): image-side depth of a plane from its disparity (eq. 2)."""
     return disparity_mm * sensor_distance_mm / (filter_centre_distance_mm + disparity_mm)
@@ -50,12 +54,14 @@ def inter_object_depth_from_disparity_mm(
     return sensor_distance_mm * disparity_mm / (m * (m * filter_centre_distance_mm - disparity_mm))
 
 
+@register_jitable
 def inter_object_depth_far_mm(inter_image_depth: Value, sensor_distance_mm: float, focal_length_mm: float) -> Value:
     """ΔD = Δd / (M² (1 - (M+1)/M · Δd/d_ls)) for an object beyond the focus plane, Δd >= 0 (eq. 13)."""
     m = magnification(sensor_distance_mm, focal_length_mm)
     return inter_image_depth / (m * m * (1.0 - (m + 1.0) / m * inter_image_depth / sensor_distance_mm))
 
 
+@register_jitable
 def inter_object_depth_near_mm(
     inter_image_depth_magnitude: Value, sensor_distance_mm: float, focal_length_mm: float
 ) -> Value:

@@ -26,6 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import cv2
+import numba as nb
 import numpy as np
 
 from mca.processing.camera import FilterAperture
@@ -65,17 +66,32 @@ def _median_by_label(labels: np.ndarray, values: np.ndarray, count: int) -> np.n
     return _quantile_by_label(labels, values, count, 0.5)
 
 
+@nb.njit(cache=True)
+def _quantile_kernel(labels: np.ndarray, values: np.ndarray, q: float, out: np.ndarray) -> None:
+    count = out.shape[0]
+    starts = np.zeros(count + 1, np.int64)
+    for i in range(labels.shape[0]):
+        starts[labels[i] + 1] += 1
+    for k in range(count):
+        starts[k + 1] += starts[k]
+    grouped = np.empty(values.shape[0], values.dtype)  # a counting sort by label
+    filled = starts[:-1].copy()
+    for i in range(labels.shape[0]):
+        grouped[filled[labels[i]]] = values[i]
+        filled[labels[i]] += 1
+    for k in range(count):
+        n = starts[k + 1] - starts[k]
+        if n == 0:
+            out[k] = np.inf
+        else:
+            group = np.sort(grouped[starts[k] : starts[k + 1]])  # NaN last, as a sort puts it
+            out[k] = group[int(np.floor(q * (n - 1)))]
+
+
 def _quantile_by_label(labels: np.ndarray, values: np.ndarray, count: int, q: float) -> np.ndarray:
-    """The q-quantile (lower) of `values` per label (flat arrays); inf for empty labels."""
-    order = np.lexsort((values, labels))
-    sorted_labels = labels[order]
-    sorted_values = values[order]
-    starts = np.searchsorted(sorted_labels, np.arange(count))
-    ends = np.searchsorted(sorted_labels, np.arange(count), side="right")
-    out = np.full(count, np.inf)
-    has = ends > starts
-    pick = starts + np.floor(q * (ends - starts - 1)).astype(np.int64)
-    out[has] = sorted_values[pick[has]]
+    """The q-quantile (lower) of `values` per label (flat arrays, labels 0..count - 1); inf for empty labels."""
+    out = np.empty(count)
+    _quantile_kernel(np.ascontiguousarray(labels, np.int64), np.ascontiguousarray(values), float(q), out)
     return out
 
 

@@ -6,8 +6,9 @@ and the paths are summed. P1 charges a one-step change of disparity (slanted and
 larger jump; P2 shrinks where the guide image changes (an object boundary), P2(p) = max(1.5 P1,
 P2 / (1 + alpha |I(p) - I(p-r)|)). Compiled with numba: the volume is (H, W, D) with D contiguous, each
 path is a sweep over columns (horizontal paths, parallel over rows) or over rows: the three downward paths
-(vertical and diagonal) in one sweep and the three upward ones in another, the two sweeps side by side on
-two threads into two sums (a sweep parallel over the columns of a row would wait at a barrier every row).
+(vertical and diagonal) in one sweep and the three upward ones in another, each row of a sweep shared out
+among the threads by columns. Every path adds into one output volume: no second volume of the cost's size is
+made (at 20 MP one is a quarter of a gigabyte, whose first touch costs more than the sweep's waits).
 """
 
 from __future__ import annotations
@@ -38,77 +39,77 @@ def _penalty(p1: float, p2: float, alpha: float, g0: float, g1: float) -> float:
     return max(p2 / (1.0 + alpha * abs(g0 - g1)), 1.5 * p1)
 
 
-@nb.njit(cache=True, fastmath=True)
-def _vertical_sweep(cost, guide, p1, p2, alpha, out, dy, assign):
-    """The three paths with a vertical component dy (+1: top to bottom) in one sweep over the rows: path k has
-    the predecessor (y - dy, x - dx_k), dx = 0, +1, -1. Their sum goes into `out` (`assign`: replaces its
-    values, else adds to them). Serial: the caller runs the two sweeps side by side."""
-    h, w, count = cost.shape
-    prev = np.empty((3, w, count), np.float32)
-    cur = np.empty((3, w, count), np.float32)
-    prev_min = np.empty((3, w), np.float32)
-    cur_min = np.empty((3, w), np.float32)
-    y0 = 0 if dy > 0 else h - 1
-    for x in range(w):
-        m = np.float32(np.inf)
+@nb.njit(cache=True, fastmath=True, inline="always")
+def _vertical_row(cost, guide, p1, p2, alpha, out, y, yp, x0, x1, prev, prev_min, cur, cur_min):
+    """Row y of the three paths with predecessors in row yp (path k: (yp, x - dx_k), dx = 0, +1, -1) for the
+    columns x0..x1 - 1; their sum is added into `out`."""
+    w, count = cost.shape[1], cost.shape[2]
+    for k in range(3):
+        dx = 0 if k == 0 else (1 if k == 1 else -1)
+        for x in range(x0, x1):
+            xp = x - dx
+            c = cost[y, x]
+            row = cur[k, x]
+            if xp < 0 or xp >= w:
+                m = np.float32(np.inf)
+                for d in range(count):
+                    row[d] = c[d]
+                    m = min(m, c[d])
+                cur_min[k, x] = m
+            else:
+                pen = _penalty(p1, p2, alpha, guide[y, x], guide[yp, xp])
+                cur_min[k, x] = _step(c, prev[k, xp], prev_min[k, xp], p1, pen, row)
+    for x in range(x0, x1):
+        o = out[y, x]
         for d in range(count):
-            m = min(m, cost[y0, x, d])
-            out[y0, x, d] = 3.0 * cost[y0, x, d] + (0.0 if assign else out[y0, x, d])
-        for k in range(3):
+            o[d] += cur[0, x, d] + cur[1, x, d] + cur[2, x, d]
+
+
+@nb.njit(cache=True, parallel=True, fastmath=True)
+def _vertical_sweep(cost, guide, p1, p2, alpha, out, dy, chunks):
+    """The three paths with a vertical component dy (+1: top to bottom) in one sweep over the rows, their sum
+    added into `out`. Each row is shared out among the threads in `chunks` column blocks; a row starts when
+    the one before it is done (its predecessors are there)."""
+    h, w, count = cost.shape
+    bufs = np.empty((2, 3, w, count), np.float32)
+    mins = np.empty((2, 3, w), np.float32)
+    y0 = 0 if dy > 0 else h - 1
+    for j in nb.prange(chunks):
+        for x in range(j * w // chunks, (j + 1) * w // chunks):
+            m = np.float32(np.inf)
             for d in range(count):
-                prev[k, x, d] = cost[y0, x, d]
-            prev_min[k, x] = m
+                m = min(m, cost[y0, x, d])
+                out[y0, x, d] += 3.0 * cost[y0, x, d]
+            for k in range(3):
+                for d in range(count):
+                    bufs[0, k, x, d] = cost[y0, x, d]
+                mins[0, k, x] = m
     for i in range(1, h):
         y = y0 + dy * i
-        yp = y - dy
-        for k in range(3):
-            dx = 0 if k == 0 else (1 if k == 1 else -1)
-            for x in range(w):
-                xp = x - dx
-                c = cost[y, x]
-                row = cur[k, x]
-                if xp < 0 or xp >= w:
-                    m = np.float32(np.inf)
-                    for d in range(count):
-                        row[d] = c[d]
-                        m = min(m, c[d])
-                    cur_min[k, x] = m
-                else:
-                    pen = _penalty(p1, p2, alpha, guide[y, x], guide[yp, xp])
-                    cur_min[k, x] = _step(c, prev[k, xp], prev_min[k, xp], p1, pen, row)
-        for x in range(w):
-            o = out[y, x]
-            if assign:
-                for d in range(count):
-                    o[d] = cur[0, x, d] + cur[1, x, d] + cur[2, x, d]
-            else:
-                for d in range(count):
-                    o[d] += cur[0, x, d] + cur[1, x, d] + cur[2, x, d]
-        prev, cur = cur, prev
-        prev_min, cur_min = cur_min, prev_min
-
-
-@nb.njit(cache=True, parallel=True)
-def _vertical_passes(cost, guide, p1, p2, alpha, down, up):
-    """The six paths with a vertical component: the downward sweep added into `down` and the upward one
-    written into `up`, side by side on two threads (one sweep each, no barrier per row)."""
-    for k in nb.prange(2):
-        if k == 0:
-            _vertical_sweep(cost, guide, p1, p2, alpha, down, 1, False)
-        else:
-            _vertical_sweep(cost, guide, p1, p2, alpha, up, -1, True)
+        p, q = (i - 1) % 2, i % 2
+        for j in nb.prange(chunks):
+            _vertical_row(
+                cost,
+                guide,
+                p1,
+                p2,
+                alpha,
+                out,
+                y,
+                y - dy,
+                j * w // chunks,
+                (j + 1) * w // chunks,
+                bufs[p],
+                mins[p],
+                bufs[q],
+                mins[q],
+            )
 
 
 @nb.njit(cache=True, parallel=True, fastmath=True)
-def _add_into(out, other):
-    h = out.shape[0]
-    for y in nb.prange(h):
-        out[y] += other[y]
-
-
-@nb.njit(cache=True, parallel=True, fastmath=True)
-def _columns_pass(cost, guide, p1, p2, alpha, out, dx):
-    """Horizontal paths: every row on its own, x in order (dx = +1: left to right)."""
+def _columns_pass(cost, guide, p1, p2, alpha, out, dx, assign):
+    """Horizontal paths: every row on its own, x in order (dx = +1: left to right); `assign`: the path's values
+    replace those in `out`, else they are added."""
     h, w, count = cost.shape
     for y in nb.prange(h):
         prev = np.empty(count, np.float32)
@@ -117,7 +118,7 @@ def _columns_pass(cost, guide, p1, p2, alpha, out, dx):
         m = np.float32(np.inf)
         for d in range(count):
             prev[d] = cost[y, x0, d]
-            out[y, x0, d] += prev[d]
+            out[y, x0, d] = prev[d] + (0.0 if assign else out[y, x0, d])
             m = min(m, prev[d])
         for i in range(1, w):
             x = x0 + dx * i
@@ -125,7 +126,7 @@ def _columns_pass(cost, guide, p1, p2, alpha, out, dx):
             m = _step(cost[y, x], prev, m, p1, pen, row)  # type: ignore[assignment,arg-type]  # numba unifies float32 and float
             o = out[y, x]
             for d in range(count):
-                o[d] += row[d]
+                o[d] = row[d] + (0.0 if assign else o[d])
                 prev[d] = row[d]
 
 
@@ -136,11 +137,11 @@ def aggregate(cost_hwd: np.ndarray, guide: np.ndarray, p1: float, p2: float, alp
     (0: constant P2)."""
     cost = np.ascontiguousarray(cost_hwd, dtype=np.float32)
     guide = np.ascontiguousarray(guide, dtype=np.float32)
-    out = np.zeros_like(cost)
+    out = np.empty_like(cost)  # every value written by the first pass
     a, q1, q2 = np.float32(alpha), np.float32(p1), np.float32(p2)
-    _columns_pass(cost, guide, q1, q2, a, out, 1)
-    _columns_pass(cost, guide, q1, q2, a, out, -1)
-    up = np.empty_like(cost)  # every value written by the upward sweep
-    _vertical_passes(cost, guide, q1, q2, a, out, up)
-    _add_into(out, up)
+    _columns_pass(cost, guide, q1, q2, a, out, 1, True)
+    _columns_pass(cost, guide, q1, q2, a, out, -1, False)
+    chunks = max(1, nb.get_num_threads())
+    _vertical_sweep(cost, guide, q1, q2, a, out, 1, chunks)
+    _vertical_sweep(cost, guide, q1, q2, a, out, -1, chunks)
     return out

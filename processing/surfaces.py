@@ -64,13 +64,34 @@ class Surfaces:
         return plane_map(self.labels, self.planes if planes is None else planes)
 
 
-def plane_map(labels: np.ndarray, planes: np.ndarray) -> np.ndarray:
-    """(H, W) float32: a x + b y + c with each pixel's plane (a, b, c) = planes[labels]."""
+@nb.njit(cache=True, parallel=True)
+def _plane_map_kernel(labels, coef, out, where, masked):
     h, w = labels.shape
-    coef = planes.astype(np.float32)[labels]
-    xs = np.arange(w, dtype=np.float32)[None, :]
-    ys = np.arange(h, dtype=np.float32)[:, None]
-    return coef[..., 0] * xs + coef[..., 1] * ys + coef[..., 2]
+    for y in nb.prange(h):
+        fy = np.float32(y)
+        for x in range(w):
+            if masked and not where[y, x]:
+                continue
+            i = labels[y, x]
+            out[y, x] = coef[i, 0] * np.float32(x) + coef[i, 1] * fy + coef[i, 2]
+
+
+def plane_map(
+    labels: np.ndarray, planes: np.ndarray, out: np.ndarray | None = None, where: np.ndarray | None = None
+) -> np.ndarray:
+    """(H, W) float32: a x + b y + c with each pixel's plane (a, b, c) = planes[labels] (float32 arithmetic).
+
+    With `out` (H, W) float32 the values are written into it, only where `where` (H, W) bool is set when
+    given; without `out` a new map (`where` then must be None)."""
+    h, w = labels.shape
+    if out is None:
+        if where is not None:
+            raise ValueError("plane_map: `where` needs an `out` to keep the other pixels in")
+        out = np.empty((h, w), np.float32)
+    coef = np.ascontiguousarray(planes, np.float32)
+    mask = np.ones((1, 1), bool) if where is None else np.asarray(where, bool)
+    _plane_map_kernel(np.ascontiguousarray(labels), coef, out, mask, where is not None)
+    return out
 
 
 def superpixels(image: np.ndarray, params: SurfaceParams = SurfaceParams()) -> np.ndarray:

@@ -75,8 +75,9 @@ def test_the_b_spline_sampler_removes_the_noise_bias_of_full_colour_input():
 @pytest.mark.parametrize("shape", [(40, 64), (37, 51)])
 def test_the_coarse_cost_comes_back_up_as_opencv_resizes_it(shape):
     """The fused blend (fine volume averaged with the half-size one brought up, transposed to (H, W, D) in one
-    pass) against OpenCV's bilinear resize of each slice, on odd and even sizes."""
-    from mca.processing.dense import _blend_hwd
+    pass, one chunk of candidates at a time) against OpenCV's bilinear resize of each slice, on odd and even
+    sizes."""
+    from mca.processing.dense import _blend_kernel
 
     rng = np.random.default_rng(5)
     h, w = shape
@@ -84,7 +85,35 @@ def test_the_coarse_cost_comes_back_up_as_opencv_resizes_it(shape):
     coarse = rng.random((7, (h + 1) // 2, (w + 1) // 2), dtype=np.float32)
     up = np.stack([cv2.resize(s, (w, h), interpolation=cv2.INTER_LINEAR) for s in coarse])
     expected = ((fine + 0.5 * up) / 1.5).transpose(1, 2, 0)
-    blended = _blend_hwd(fine, coarse, 0.5)
-    assert blended.shape == (h, w, 7) and blended.flags.c_contiguous
+    blended = np.full((h, w, 7), np.nan, np.float32)
+    for first, last in ((0, 4), (4, 7)):
+        _blend_kernel(fine[first:last], coarse[first:last], 1 / 1.5, 0.5 / 1.5, blended, first)
     assert np.abs(blended - expected).max() < 1e-5
-    assert np.array_equal(_blend_hwd(fine, None, 0.5), fine.transpose(1, 2, 0))
+
+
+def test_the_chunked_volume_is_the_whole_volume_blended():
+    """`_cost_hwd` makes the full-size cost `_CHUNK` candidates at a time into one buffer: with more candidates
+    than a chunk, it equals the cost volume made at once and blended with the half-size one."""
+    from mca.processing.cost import cost_input, cost_volume
+    from mca.processing.dense import _CHUNK, _cost_hwd
+
+    shape = (64, 80)
+    planes = render_layers([(texture(shape, 2), np.ones(shape, np.float32), 1.5)], shape, APERTURE)
+    params = DenseParams(coarse_weight=0.5)
+    candidates = np.arange(-(_CHUNK + 3), _CHUNK + 4) * 0.5
+    assert len(candidates) > 2 * _CHUNK
+    inputs = cost_input(planes)
+
+    def volume(given, c: np.ndarray) -> np.ndarray:
+        noise = given.noise if params.noise_model else None
+        return cost_volume(given.stacked, APERTURE, c, params.window_px, params.noise_floor, params.sampling, noise)
+
+    fine = volume(inputs, candidates)
+    coarse = volume(cost_input(cv2.pyrDown(planes)), candidates / 2.0)
+    up = np.stack([cv2.resize(s, (80, 64), interpolation=cv2.INTER_LINEAR) for s in coarse])
+    expected = ((fine + 0.5 * up) / 1.5).transpose(1, 2, 0)
+    got = _cost_hwd(planes, APERTURE, candidates, params, inputs)
+    assert got.shape == (64, 80, len(candidates)) and got.flags.c_contiguous
+    assert np.abs(got - expected).max() < 1e-5
+    alone = _cost_hwd(planes, APERTURE, candidates, DenseParams(coarse_weight=0.0), inputs)
+    assert np.array_equal(alone, fine.transpose(1, 2, 0))
