@@ -107,22 +107,6 @@ def _sample_row(src: np.ndarray, y: int, sx: float, sy: float, out: np.ndarray, 
 
 
 @nb.njit(cache=True, fastmath=True, inline="always")
-def _bilinear(img: np.ndarray, y: float, x: float) -> float:
-    h, w = img.shape
-    x = min(max(x, 0.0), w - 1.0)
-    y = min(max(y, 0.0), h - 1.0)
-    x0 = int(x)
-    y0 = int(y)
-    x1 = min(x0 + 1, w - 1)
-    y1 = min(y0 + 1, h - 1)
-    fx = x - x0
-    fy = y - y0
-    top = img[y0, x0] * (1.0 - fx) + img[y0, x1] * fx
-    bottom = img[y1, x0] * (1.0 - fx) + img[y1, x1] * fx
-    return top * (1.0 - fy) + bottom * fy
-
-
-@nb.njit(cache=True, fastmath=True, inline="always")
 def _sample_row_bilinear(src: np.ndarray, y: int, sx: float, sy: float, out: np.ndarray) -> None:
     """out[x] = src bilinearly sampled at (x + sx, y + sy), coordinates clamped to the image."""
     h, w = src.shape
@@ -174,8 +158,8 @@ def _sample_row_shifted(
 def _row_taps(
     h: int, w: int, y: int, disparity_row: np.ndarray, sx: float, sy: float, at: np.ndarray, frac: np.ndarray
 ):
-    """The bilinear taps of row y shifted by d(x) (sx, sy), clamped as `_bilinear` clamps: at[0..3, x] = y0, x0,
-    y1, x1 and frac[0..1, x] = fx, fy. Made once per channel and row, used for every band."""
+    """The bilinear taps of row y shifted by d(x) (sx, sy), the position clamped to the image: at[0..3, x] = y0,
+    x0, y1, x1 and frac[0..1, x] = fx, fy. Made once per channel and row, used for every band."""
     for x in range(w):
         dd = disparity_row[x]
         px = min(max(x + dd * sx, 0.0), w - 1.0)
@@ -192,7 +176,7 @@ def _row_taps(
 
 @nb.njit(cache=True, fastmath=True, inline="always")
 def _gather_row(src: np.ndarray, at: np.ndarray, frac: np.ndarray, out: np.ndarray) -> None:
-    """out[x] = `_bilinear` of src at the taps of `_row_taps`."""
+    """out[x] = src sampled bilinearly at the taps of `_row_taps`."""
     for x in range(out.shape[0]):
         y0, x0, y1, x1 = at[0, x], at[1, x], at[2, x], at[3, x]
         fx, fy = frac[0, x], frac[1, x]
@@ -202,17 +186,13 @@ def _gather_row(src: np.ndarray, at: np.ndarray, frac: np.ndarray, out: np.ndarr
 
 
 @nb.njit(cache=True, fastmath=True, inline="always")
-def _sample_row_map(
-    src: np.ndarray, y: int, disparity_row: np.ndarray, sx: float, sy: float, out: np.ndarray, bspline: bool
-) -> None:
-    """out[x] = src sampled at (x + d(x) sx, y + d(x) sy) through the cubic B-spline or bilinearly, clamped."""
+def _sample_row_map_bspline(src: np.ndarray, y: int, disparity_row: np.ndarray, sx: float, sy: float, out: np.ndarray):
+    """out[x] = src sampled at (x + d(x) sx, y + d(x) sy) through the cubic B-spline, clamped (bilinear
+    per-pixel sampling goes through `_row_taps` and `_gather_row`)."""
     _h, w = src.shape
     for x in range(w):
         dd = disparity_row[x]
-        if bspline:
-            out[x] = _bspline(src, y + dd * sy, x + dd * sx)
-        else:
-            out[x] = _bilinear(src, y + dd * sy, x + dd * sx)
+        out[x] = _bspline(src, y + dd * sy, x + dd * sx)
 
 
 @nb.njit(cache=True, fastmath=True, inline="always")
@@ -332,9 +312,7 @@ def _cost_map(bands, shifts, d, disparity, radius, eps, out, bspline, variance, 
                     if per_pixel and not bspline:
                         _gather_row(bands[b, c], taps[c], fractions[c], samples[b, c])
                     elif per_pixel:
-                        _sample_row_map(
-                            bands[b, c], y, disparity[y], shifts[c, 0], shifts[c, 1], samples[b, c], bspline
-                        )
+                        _sample_row_map_bspline(bands[b, c], y, disparity[y], shifts[c, 0], shifts[c, 1], samples[b, c])
                     else:
                         _sample_row_shifted(
                             bands[b, c], y, d * shifts[c, 0], d * shifts[c, 1], samples[b, c], tmp, bspline

@@ -126,7 +126,6 @@ def _cost_hwd(
     whole (D, H, W) volume beside the (H, W, D) one would be another quarter of a gigabyte to allocate."""
     h, w = planes.shape[:2]
     count = len(candidates)
-    coarse = None
     if params.coarse_weight > 0 and min(h, w) >= 32:
         coarse = _volume_dhw(cv2.pyrDown(planes), aperture, candidates / 2.0, params)
         w_fine, w_coarse = 1.0 / (1.0 + params.coarse_weight), params.coarse_weight / (1.0 + params.coarse_weight)
