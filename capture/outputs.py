@@ -210,7 +210,8 @@ def read_png_text(data: bytes) -> dict[str, str]:
     return found
 
 
-TIFF_DEFLATE_LEVEL = 1  # depth maps are piecewise constant: level 1 is 180x smaller than raw at 1/8 s per 20 MP
+TIFF_DEFLATE_LEVEL = 1  # the per-pixel depth of a 20 MP capture: 13-20 MB of 80, level 9 barely smaller
+TIFF_STRIPS = 32  # strips per map, compressed on several threads (one strip: 0.7 s at 20 MP, 32 on 2 threads: 0.3 s)
 
 
 TIFF_TAG_GDAL_METADATA = 42112  # GDAL's XML metadata (units, descriptions), ASCII
@@ -239,7 +240,8 @@ def write_tiff_float32(
     software: str | None = None,
     nodata: float | None = None,
 ) -> Path:
-    """Write a 2-D array as a single-page float32 TIFF (NaN kept), deflate-compressed, atomically.
+    """Write a 2-D array as a single-page float32 TIFF (NaN kept), deflate-compressed in `TIFF_STRIPS` strips
+    on up to 4 threads, atomically.
 
     `description` goes into ImageDescription as JSON; `software` into Software; `unit` (with the
     description's "meaning") into GDAL_METADATA and `nodata` into GDAL_NODATA ("nan" for NaN), the
@@ -264,6 +266,8 @@ def write_tiff_float32(
             photometric="minisblack",
             compression="zlib",
             compressionargs={"level": TIFF_DEFLATE_LEVEL},
+            rowsperstrip=max(1, -(-array.shape[0] // TIFF_STRIPS)),
+            maxworkers=min(4, os.cpu_count() or 1),
             description=None if description is None else json.dumps(json_safe(description), ensure_ascii=True),
             metadata=None,
             software=software,

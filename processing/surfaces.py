@@ -31,6 +31,7 @@ class SurfaceParams:
 
     superpixel_px: int = 550  # mean superpixel area
     compactness: float = 10.0  # SLIC: colour versus position
+    slic_iterations: int = 10  # SLIC: k-means iterations
     interior_px: int = 2  # pixels this close to a superpixel's edge weigh little in its plane fit
     slope_ridge: float = 1e-2  # ridge on the plane slopes (per pixel of support), towards fronto-parallel
     rings: int = 2  # candidate planes: the superpixel's own and its neighbours' within this many rings
@@ -98,7 +99,14 @@ def superpixels(image: np.ndarray, params: SurfaceParams = SurfaceParams()) -> n
     """(H, W) int32 SLIC labels 0..n-1 of an (H, W, 3) float image in [0, 1], about `superpixel_px` pixels each."""
     h, w = image.shape[:2]
     count = max(4, int(round(h * w / params.superpixel_px)))
-    labels = slic(image, n_segments=count, compactness=params.compactness, start_label=0, channel_axis=-1)
+    labels = slic(
+        image,
+        n_segments=count,
+        compactness=params.compactness,
+        start_label=0,
+        channel_axis=-1,
+        max_num_iter=params.slic_iterations,
+    )
     _, dense = np.unique(labels, return_inverse=True)
     return dense.reshape(h, w).astype(np.int32)
 

@@ -124,6 +124,22 @@ def test_tiff_png_json_round_trip(tmp_path):
     assert _leftovers(tmp_path) == []
 
 
+def test_a_large_map_is_written_in_strips_that_libtiff_reads_back_exactly(tmp_path):
+    """The depth map is compressed strip by strip on several threads; OpenCV's libtiff (not the writer's own
+    library) reads every strip back to the same floats, NaN included."""
+    rng = np.random.default_rng(3)
+    depth = (1500.0 + rng.normal(0.0, 40.0, (301, 257))).astype(np.float32)
+    depth[5:40, 100:180] = np.nan
+    outputs.write_tiff_float32(tmp_path / "depth.tiff", depth)
+    with tifffile.TiffFile(tmp_path / "depth.tiff") as tif:
+        page = tif.pages[0]
+        assert len(page.dataoffsets) == outputs.TIFF_STRIPS - 1  # 301 rows in strips of 10
+        assert page.compression == tifffile.COMPRESSION.ADOBE_DEFLATE
+    read = cv2.imread(str(tmp_path / "depth.tiff"), cv2.IMREAD_UNCHANGED)
+    assert read.dtype == np.float32
+    np.testing.assert_array_equal(read, depth)
+
+
 def test_srgb_curve():
     assert outputs.linear_to_srgb8(np.array([0.0, 0.0031308, 0.2159, 1.0, 2.0])).tolist() == [0, 10, 128, 255, 255]
     np.testing.assert_allclose(outputs.srgb_to_linear(np.array([0.5])), [0.214041], rtol=1e-5)
