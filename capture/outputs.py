@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from mca.capture.threads import available_cores
 from mca.processing import colour
 
 TEMP_SUFFIX = ".tmp"
@@ -231,6 +232,12 @@ def gdal_metadata_xml(unit: str, description: str, items: dict[str, str] | None 
     return "\n".join(lines)
 
 
+def compression_threads() -> int:
+    """Threads for compressing one file: this process's share of the cores (a batch worker's `MCA_THREADS`,
+    `capture.threads.limit_threads`), else its cores, at most 4."""
+    return int(os.environ.get("MCA_THREADS") or 0) or min(4, available_cores())
+
+
 def write_tiff_float32(
     path: str | Path,
     image: np.ndarray,
@@ -241,7 +248,7 @@ def write_tiff_float32(
     nodata: float | None = None,
 ) -> Path:
     """Write a 2-D array as a single-page float32 TIFF (NaN kept), deflate-compressed in `TIFF_STRIPS` strips
-    on up to 4 threads, atomically.
+    on `compression_threads()` threads, atomically.
 
     `description` goes into ImageDescription as JSON; `software` into Software; `unit` (with the
     description's "meaning") into GDAL_METADATA and `nodata` into GDAL_NODATA ("nan" for NaN), the
@@ -267,7 +274,7 @@ def write_tiff_float32(
             compression="zlib",
             compressionargs={"level": TIFF_DEFLATE_LEVEL},
             rowsperstrip=max(1, -(-array.shape[0] // TIFF_STRIPS)),
-            maxworkers=min(4, os.cpu_count() or 1),
+            maxworkers=compression_threads(),
             description=None if description is None else json.dumps(json_safe(description), ensure_ascii=True),
             metadata=None,
             software=software,

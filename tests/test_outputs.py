@@ -140,6 +140,21 @@ def test_a_large_map_is_written_in_strips_that_libtiff_reads_back_exactly(tmp_pa
     np.testing.assert_array_equal(read, depth)
 
 
+def test_the_strips_are_compressed_on_the_batch_workers_share_of_the_cores(tmp_path, monkeypatch):
+    """A batch worker limited to one thread (`MCA_THREADS`, set by `capture.threads.limit_threads`) compresses on
+    one thread, not on every core beside the other workers."""
+    calls = []
+    real = tifffile.imwrite
+    monkeypatch.setattr(tifffile, "imwrite", lambda *a, **k: calls.append(k["maxworkers"]) or real(*a, **k))
+    monkeypatch.setenv("MCA_THREADS", "1")
+    outputs.write_tiff_float32(tmp_path / "a.tiff", np.ones((64, 64), np.float32))
+    monkeypatch.delenv("MCA_THREADS")
+    monkeypatch.setattr(outputs, "available_cores", lambda: 2)
+    outputs.write_tiff_float32(tmp_path / "b.tiff", np.ones((64, 64), np.float32))
+    assert calls == [1, 2]
+    np.testing.assert_array_equal(tifffile.imread(tmp_path / "a.tiff"), np.ones((64, 64), np.float32))
+
+
 def test_srgb_curve():
     assert outputs.linear_to_srgb8(np.array([0.0, 0.0031308, 0.2159, 1.0, 2.0])).tolist() == [0, 10, 128, 255, 255]
     np.testing.assert_allclose(outputs.srgb_to_linear(np.array([0.5])), [0.214041], rtol=1e-5)
