@@ -58,3 +58,19 @@ def test_a_second_initiator_cannot_end_the_first_ones_session() -> None:
         second = Camera.open(PtpIpTransport("127.0.0.1", server.port, timeout_s=2))  # free again once it left
         second.close()
     assert buf.getvalue() == deterministic_frame(1)
+
+
+def test_a_host_that_closed_can_connect_again_at_once_while_the_camera_is_slow_to_let_go(monkeypatch) -> None:
+    """The camera ends the session only after it sees the command connection close. `close()` waits for the
+    camera's side to close too, so reconnecting right away finds the camera free, not busy (this raced in CI)."""
+    with PtpIpServer(port=0) as server:
+        end_session = server._end_session
+
+        def slow_end_session(conn_id: int) -> None:
+            time.sleep(0.3)  # a body still tidying up the old session
+            end_session(conn_id)
+
+        monkeypatch.setattr(server, "_end_session", slow_end_session)
+        for _ in range(3):
+            Camera.open(PtpIpTransport("127.0.0.1", server.port, timeout_s=2)).close()
+    assert server.refused == 0

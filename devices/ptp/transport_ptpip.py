@@ -20,6 +20,7 @@ import getpass
 import socket
 import struct
 import threading
+import time
 import uuid
 from collections import deque
 from pathlib import Path
@@ -120,6 +121,35 @@ class _Conn:
     def recv_packet(self, max_bytes: int = MAX_CONTROL_PACKET_BYTES) -> tuple[int, bytes]:
         body_len, kind = parse_packet_header(self.recv_exact(8), max_bytes)
         return kind, self.recv_exact(body_len)
+
+
+#: On close, how long to wait for the camera to close the command connection too (it ends the session first).
+CLOSE_WAIT_S = 1.0
+
+
+def _close_gracefully(sock: socket.socket, wait_s: float) -> None:
+    """Close our side of a connection (FIN) and wait, at most `wait_s`, for the camera to close its side.
+
+    The camera ends the session when it sees the command connection close, and only then closes its end: a
+    host that reconnects (or another program that connects) after this returns finds the camera free,
+    instead of "busy" while the camera is still releasing the old session."""
+    try:
+        sock.shutdown(socket.SHUT_WR)
+        sock.settimeout(0.05)
+        deadline = time.monotonic() + wait_s
+        while time.monotonic() < deadline:
+            try:
+                if not sock.recv(65536):
+                    break  # the camera closed its side
+            except TimeoutError:
+                continue
+    except OSError:
+        pass
+    finally:
+        try:
+            sock.close()
+        except OSError:
+            pass
 
 
 class PtpIpTransport(Transport):
@@ -254,15 +284,18 @@ class PtpIpTransport(Transport):
         if self._closed:
             return
         self._closed = True
-        for conn in (getattr(self, "cmd", None), getattr(self, "evt", None)):
-            if conn is not None:
-                try:
-                    conn.sock.shutdown(socket.SHUT_RDWR)
-                except OSError:
-                    pass
-                try:
-                    conn.sock.close()
-                except OSError:
-                    pass
+        cmd = getattr(self, "cmd", None)
+        if cmd is not None:
+            _close_gracefully(cmd.sock, min(CLOSE_WAIT_S, self.timeout_s))
+        evt = getattr(self, "evt", None)
+        if evt is not None:
+            try:
+                evt.sock.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+            try:
+                evt.sock.close()
+            except OSError:
+                pass
         if self._event_thread is not None and self._event_thread is not threading.current_thread():
             self._event_thread.join(2.0)
