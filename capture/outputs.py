@@ -25,7 +25,6 @@ from typing import Any
 
 import numpy as np
 
-from mca.capture.threads import available_cores
 from mca.processing import colour
 
 TEMP_SUFFIX = ".tmp"
@@ -233,9 +232,12 @@ def gdal_metadata_xml(unit: str, description: str, items: dict[str, str] | None 
 
 
 def compression_threads() -> int:
-    """Threads for compressing one file: this process's share of the cores (a batch worker's `MCA_THREADS`,
-    `capture.threads.limit_threads`), else its cores, at most 4."""
-    return int(os.environ.get("MCA_THREADS") or 0) or min(4, available_cores())
+    """Threads for compressing one file: the processing's own count (`processing.disparity.helper_threads`:
+    this process's share of the cores in a batch worker, `capture.threads.limit_threads`; else its cores, at
+    most 4)."""
+    from mca.processing.disparity import helper_threads  # (OpenCV loads with it: not at this module's import)
+
+    return helper_threads()
 
 
 def write_tiff_float32(

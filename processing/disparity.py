@@ -142,6 +142,11 @@ def set_worker_threads(count: int) -> None:
         _POOL = None
 
 
+def helper_threads() -> int:
+    """Threads this process computes on: the helper pool's size (a batch worker's share of the cores)."""
+    return _WORKERS
+
+
 def _pool() -> ThreadPoolExecutor:
     global _POOL
     if _POOL is None:

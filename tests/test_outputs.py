@@ -143,14 +143,19 @@ def test_a_large_map_is_written_in_strips_that_libtiff_reads_back_exactly(tmp_pa
 def test_the_strips_are_compressed_on_the_batch_workers_share_of_the_cores(tmp_path, monkeypatch):
     """A batch worker limited to one thread (`MCA_THREADS`, set by `capture.threads.limit_threads`) compresses on
     one thread, not on every core beside the other workers."""
+    from mca.processing import disparity
+
     calls = []
     real = tifffile.imwrite
     monkeypatch.setattr(tifffile, "imwrite", lambda *a, **k: calls.append(k["maxworkers"]) or real(*a, **k))
-    monkeypatch.setenv("MCA_THREADS", "1")
-    outputs.write_tiff_float32(tmp_path / "a.tiff", np.ones((64, 64), np.float32))
-    monkeypatch.delenv("MCA_THREADS")
-    monkeypatch.setattr(outputs, "available_cores", lambda: 2)
-    outputs.write_tiff_float32(tmp_path / "b.tiff", np.ones((64, 64), np.float32))
+    before = disparity.helper_threads()
+    try:
+        disparity.set_worker_threads(1)  # what `limit_threads` does in a batch worker
+        outputs.write_tiff_float32(tmp_path / "a.tiff", np.ones((64, 64), np.float32))
+        disparity.set_worker_threads(2)
+        outputs.write_tiff_float32(tmp_path / "b.tiff", np.ones((64, 64), np.float32))
+    finally:
+        disparity.set_worker_threads(before)
     assert calls == [1, 2]
     np.testing.assert_array_equal(tifffile.imread(tmp_path / "a.tiff"), np.ones((64, 64), np.float32))
 
