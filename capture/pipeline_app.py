@@ -709,6 +709,7 @@ def result_document(
         },
         "camera": None if camera is None else camera.describe(),
         "colour": loaded.colour.as_dict(),
+        "lateral_colour": {k: round(v, 4) for k, v in result.lateral_colour.describe().items()},
         "layers_order": LAYER_ORDER,
         "capture": outputs.json_safe(loaded.metadata),
         "outputs": written + [RESULT_NAME],

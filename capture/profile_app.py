@@ -51,6 +51,11 @@ def describe_profile(name_or_path: str) -> str:
     ]
     if ap.crosstalk is not None:
         lines.append(f"crosstalk            {ap.crosstalk}")
+    if isinstance(ap.lateral_colour, str):
+        lines.append("lateral colour       measured in each capture")
+    elif ap.lateral_colour is not None:
+        (rx, ry), (bx, by) = ap.lateral_colour
+        lines.append(f"lateral colour       red {rx:+g}, {ry:+g}  blue {bx:+g}, {by:+g} (x, y; parts per thousand)")
     if p.lens is None:
         lines.append("lens                 none: depth is reported as disparity in pixels only")
         return "\n".join(lines)

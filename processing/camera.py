@@ -57,6 +57,9 @@ class FilterAperture:
     blue_mm: tuple[float, float]
     diameter_mm: float | None = None
     crosstalk: tuple[tuple[float, float, float], ...] | None = None
+    # the lens's lateral colour (`processing.chromatic`): None (none taken out), "measure" (measured in each
+    # capture), or ((kx, ky) of red, (kx, ky) of blue) against green, in parts per thousand (calibrated)
+    lateral_colour: str | tuple[tuple[float, float], tuple[float, float]] | None = None
 
     def centre_mm(self, channel: str) -> tuple[float, float]:
         return {"red": self.red_mm, "green": self.green_mm, "blue": self.blue_mm}[channel]
@@ -189,6 +192,39 @@ def _crosstalk(table: Mapping[str, Any], source: str) -> tuple[tuple[float, floa
     return (rows[0], rows[1], rows[2])
 
 
+MAX_LATERAL_COLOUR_PPT = 20.0  # 2 % magnification between colours: far beyond any photographic lens
+
+
+def _lateral_colour(
+    table: Mapping[str, Any], source: str
+) -> str | tuple[tuple[float, float], tuple[float, float]] | None:
+    if "lateral_colour" not in table:
+        return None
+    value = table["lateral_colour"]
+    field = "aperture.lateral_colour"
+    if value == "measure":
+        return "measure"
+    if (
+        not isinstance(value, (list, tuple))
+        or len(value) != 2
+        or not all(
+            isinstance(row, (list, tuple))
+            and len(row) == 2
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in row)
+            for row in value
+        )
+    ):
+        raise ProfileError(
+            field,
+            '"measure" (in each capture) or [[kx, ky] of red, [kx, ky] of blue] against green, in parts per '
+            f"thousand (result.json's lateral_colour of a capture of a flat, textured target), got {value!r}",
+            source,
+        )
+    if any(abs(v) > MAX_LATERAL_COLOUR_PPT for row in value for v in row):
+        raise ProfileError(field, f"{value!r}: beyond {MAX_LATERAL_COLOUR_PPT:g} parts per thousand", source)
+    return ((float(value[0][0]), float(value[0][1])), (float(value[1][0]), float(value[1][1])))
+
+
 def profile_from_mapping(data: Mapping[str, Any], source: str = "<profile>") -> CameraProfile:
     """Validate a parsed profile (e.g. from TOML) and build a `CameraProfile`; errors name `source` and the field."""
     if not isinstance(data, Mapping):
@@ -301,6 +337,7 @@ def profile_from_mapping(data: Mapping[str, Any], source: str = "<profile>") -> 
         blue_mm=centres["blue"],
         diameter_mm=diameter,
         crosstalk=_crosstalk(ap, source),
+        lateral_colour=_lateral_colour(ap, source),
     )
     return CameraProfile(
         name=name.strip(),

@@ -7,6 +7,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from mca.processing.chromatic import NO_LATERAL_COLOUR, LateralColour
+
 
 class Recorder(Protocol):
     """Receives what each stage computed; the application turns it into a rerun recording.
@@ -122,3 +124,4 @@ class DepthResult:
     layers: list[MultiPlaneImage]
     pixel_scale: float = 1.0
     timings_s: dict[str, float] = field(default_factory=dict)
+    lateral_colour: LateralColour = NO_LATERAL_COLOUR  # what `processing.chromatic` measured and took out

@@ -124,6 +124,24 @@ def test_crosstalk_is_read(tmp_path):
     assert p.aperture.crosstalk[1] == (0.05, 0.9, 0.05)
 
 
+def test_lateral_colour_is_read_and_bad_values_are_refused(tmp_path):
+    measure = PAPER.replace("[aperture]", '[aperture]\nlateral_colour = "measure"')
+    assert load_profile_file(_write(tmp_path, measure)).aperture.lateral_colour == "measure"
+    calibrated = PAPER.replace("[aperture]", "[aperture]\nlateral_colour = [[0.02, 0.03], [0.4, 0.45]]")
+    assert load_profile_file(_write(tmp_path, calibrated)).aperture.lateral_colour == ((0.02, 0.03), (0.4, 0.45))
+    assert load_profile("paper-70d").aperture.lateral_colour is None
+    for bad, message in (
+        ('"auto"', "measure"),
+        ("[0.4, 0.45]", "measure"),
+        ("[[0.1, 0.2], [0.3, true]]", "measure"),
+        ("[[0.1, 0.2], [30.0, 0.3]]", "parts per thousand"),
+    ):
+        text = PAPER.replace("[aperture]", f"[aperture]\nlateral_colour = {bad}")
+        with pytest.raises(ProfileError, match=message) as info:
+            load_profile_file(_write(tmp_path, text))
+        assert "aperture.lateral_colour" in str(info.value) and "p.toml" in str(info.value)
+
+
 def _mca(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "mca", *args], capture_output=True, text=True, timeout=120)
 
