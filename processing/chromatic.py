@@ -26,7 +26,7 @@ of the true magnification under defocus blur and sensor noise, where this one st
 run one way tells nothing across the depth direction and is weighed accordingly. The fit over the tiles
 is robust (iteratively reweighted least squares with a Huber weight). The magnifications are
 dimensionless, so they hold at every resolution of the same frame; a reading that is no magnification
-(kx and ky of opposite signs, or one many times the other) is not used.
+(kx and ky of opposite signs) is not used.
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ HUBER_PX = 0.15  # residual beyond which a tile's weight falls off (a tile reads
 SPECTRAL_SIGMA_PX = 1.0  # the Gaussian the correlation peak is smoothed to
 PHASE_ITERATIONS = 4  # fits of the phase slope per tile
 MIN_DISPLACEMENT_PX = 0.05  # largest displacement in the frame measured below which none is reported (noise)
-MAX_ANISOTROPY = 3.0  # a magnification: kx and ky of one sign, neither more than this many times the other
+MAX_DEPTH_STEP_PX = 1.0  # a step of disparity this large between neighbours of the quick search: an edge
 MAX_TILES = 600  # tiles read per channel at most, spread evenly over the readable ones (the fit has plenty)
 
 
@@ -167,10 +167,29 @@ def _robust_fit(design: np.ndarray, values: np.ndarray, weights: np.ndarray) -> 
     return coef
 
 
-def estimate_lateral_colour(planes: np.ndarray, aperture: FilterAperture, tile_px: int = TILE_PX) -> LateralColour:
-    """Lateral colour of (H, W, 3) linear planes (see the module's docstring). None (all zero) when fewer
-    than `MIN_TILES` tiles of the frame are textured enough to read, or when what is found moves no pixel
-    of these planes by `MIN_DISPLACEMENT_PX` or more (below what the tiles resolve)."""
+def _one_depth(disparity_px: np.ndarray, shape: tuple[int, int], corners: np.ndarray, tile: int) -> np.ndarray:
+    """Which tiles of a frame of `shape` hold one surface: no step between neighbouring pixels of their
+    disparities (a map of any size, in px of the frame) reaches `MAX_DEPTH_STEP_PX` (a slanted surface
+    passes, an occluding edge does not)."""
+    scale = disparity_px.shape[1] / shape[1]
+    side = max(int(round(tile * scale)), 2)
+    limit = (np.array(disparity_px.shape) - side).clip(min=0)
+    at = np.minimum((corners * scale).round().astype(int), limit)
+    disparity = np.ascontiguousarray(disparity_px, dtype=np.float32)
+    step = np.zeros_like(disparity)
+    step[:, 1:] = np.abs(np.diff(disparity, axis=1))
+    step[1:, :] = np.maximum(step[1:, :], np.abs(np.diff(disparity, axis=0)))
+    return _tiles(step, at, side).reshape(len(at), -1).max(axis=1) < MAX_DEPTH_STEP_PX
+
+
+def estimate_lateral_colour(
+    planes: np.ndarray, aperture: FilterAperture, tile_px: int = TILE_PX, disparity_px: np.ndarray | None = None
+) -> LateralColour:
+    """Lateral colour of (H, W, 3) linear planes (see the module's docstring). `disparity_px`, a disparity
+    map of the frame at any size (in px of these planes), limits the reading to tiles of one depth: where
+    depth changes inside a tile, the channels see different parts of the scene near the edge and the
+    reading across moves too. None (all zero) when fewer than `MIN_TILES` tiles are textured enough (and
+    of one depth), or when what is found moves no pixel of these planes by `MIN_DISPLACEMENT_PX` or more."""
     h, w = planes.shape[:2]
     if min(h, w) < 2 * tile_px:
         return NO_LATERAL_COLOUR
@@ -180,6 +199,8 @@ def estimate_lateral_colour(planes: np.ndarray, aperture: FilterAperture, tile_p
     corners = np.stack(np.meshgrid(ys, xs, indexing="ij"), axis=-1).reshape(-1, 2)
     green_tiles = _tiles(edges[1], corners, tile_px)
     textured = green_tiles.mean(axis=(1, 2)) > MIN_EDGE
+    if disparity_px is not None:
+        textured &= _one_depth(disparity_px, (h, w), corners, tile_px)
     corners, green_tiles = corners[textured], green_tiles[textured]
     if len(corners) < MIN_TILES:
         return NO_LATERAL_COLOUR
@@ -214,9 +235,9 @@ def estimate_lateral_colour(planes: np.ndarray, aperture: FilterAperture, tile_p
         if min(abs(normal[0]), abs(normal[1])) > 0.2:  # oblique: kx and ky apart
             coef = _robust_fit(np.stack([normal[0] * x, normal[1] * y, ones], 1), across[keep], peak[keep])
             kx, ky = float(coef[0]), float(coef[1])
-            # anything else (opposite signs, one axis alone) is no lens's or resampling's magnification: the
-            # tiles read something else (depth structure, a demosaicing or compression pattern); leave it
-            if kx * ky > 0 and max(abs(kx), abs(ky)) <= MAX_ANISOTROPY * min(abs(kx), abs(ky)):
+            # a magnification stretches (or shrinks) both axes: opposite signs are none (the tiles read
+            # something else: depth structure, a demosaicing or compression pattern), so leave the channel
+            if kx * ky > 0:
                 k[c] = (kx, ky)
         else:  # along an axis: the lens's isotropic magnification
             coef = _robust_fit(np.stack([normal[0] * x + normal[1] * y, ones], 1), across[keep], peak[keep])

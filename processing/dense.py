@@ -187,21 +187,36 @@ def _winner(aggregated: np.ndarray, candidates: np.ndarray, jump_cost: float) ->
     return disparity, confidence
 
 
-def occupied_range(
+def quick_disparity(
     planes: np.ndarray, aperture: FilterAperture, range_px: tuple[float, float], params: DenseParams
-) -> tuple[float, float]:
-    """The part of `range_px` the scene occupies, from a quick search on a quarter-size image (+ margin)."""
+) -> np.ndarray | None:
+    """A quick dense disparity of `planes` on a quarter-size image over all of `range_px`, in px of `planes`
+    (at quarter size, (H/4, W/4)); None when the image or the range is too small for it."""
     small = cv2.pyrDown(cv2.pyrDown(planes))
     if min(small.shape[:2]) < 24:
-        return range_px
+        return None
     candidates = candidate_disparities((range_px[0] / 4.0, range_px[1] / 4.0), params.step_px)
     if len(candidates) < 4:
-        return range_px
+        return None
     volume = _cost_hwd(small, aperture, candidates, replace(params, coarse_weight=0.0))
     aggregated = aggregate(volume, display_gamma(small).mean(axis=2), params.p1, params.p2)
     disparity, _ = _winner(aggregated, candidates, _PATHS * params.p2)
-    low = float(np.percentile(disparity, 0.2)) * 4.0 - params.range_margin_px - 4.0 * params.step_px
-    high = float(np.percentile(disparity, 99.8)) * 4.0 + params.range_margin_px + 4.0 * params.step_px
+    return disparity * np.float32(4.0)
+
+
+def occupied_range(
+    planes: np.ndarray,
+    aperture: FilterAperture,
+    range_px: tuple[float, float],
+    params: DenseParams,
+    quick: np.ndarray | None = None,
+) -> tuple[float, float]:
+    """The part of `range_px` the scene occupies, from `quick_disparity` (made here unless given) + margin."""
+    disparity = quick if quick is not None else quick_disparity(planes, aperture, range_px, params)
+    if disparity is None:
+        return range_px
+    low = float(np.percentile(disparity, 0.2)) - params.range_margin_px - 4.0 * params.step_px
+    high = float(np.percentile(disparity, 99.8)) + params.range_margin_px + 4.0 * params.step_px
     return (max(range_px[0], low), min(range_px[1], high))
 
 
@@ -211,11 +226,13 @@ def estimate_dense(
     range_px: tuple[float, float],
     params: DenseParams = DenseParams(),
     inputs: CostInput | None = None,
+    quick: np.ndarray | None = None,
 ) -> DenseDisparity:
     """Dense disparity of (H, W, 3) linear colour planes over `range_px` (px of these planes); `inputs` is the
-    planes' `cost.cost_input` when the caller has made it already (it then is not made again)."""
+    planes' `cost.cost_input` and `quick` their `quick_disparity` over `range_px` when the caller has made
+    them already (they then are not made again)."""
     planes = np.ascontiguousarray(planes, dtype=np.float32)
-    search = occupied_range(planes, aperture, range_px, params) if params.narrow_range else range_px
+    search = occupied_range(planes, aperture, range_px, params, quick) if params.narrow_range else range_px
     candidates = candidate_disparities(search, params.step_px)
     volume = _cost_hwd(planes, aperture, candidates, params, inputs)
     scale = params.step_px / 0.5  # penalties are given for 0.5 px steps

@@ -37,7 +37,7 @@ from mca.processing.boundaries import BoundaryParams, snap_boundaries
 from mca.processing.camera import FilterAperture
 from mca.processing.chromatic import NO_LATERAL_COLOUR, LateralColour, estimate_lateral_colour, remove_lateral_colour
 from mca.processing.cost import CostInput, cost_input
-from mca.processing.dense import DenseDisparity, DenseParams, estimate_dense
+from mca.processing.dense import DenseDisparity, DenseParams, estimate_dense, quick_disparity
 from mca.processing.depth import depth_map_mm, region_depth
 from mca.processing.disparity import parallel_map, warp_channels
 from mca.processing.features import display_gamma, texture_energy
@@ -315,35 +315,34 @@ def _planes(run: _Run) -> None:
         run.planes = align_channel_samples(run.planes, run.channel_offsets_px)
     if run.aperture.crosstalk is not None:
         run.planes = remove_crosstalk(run.planes, run.aperture.crosstalk)
-    wanted = run.aperture.lateral_colour
-    if run.params.lateral_colour or wanted == "measure":
-        # measured on the analysis grid (the magnifications hold at every size), taken out at full size; the
-        # grid serves the disparity stage too when there was nothing to take out
-        small, factor = _analysis_grid(run.planes, run.params.analysis_max_side_px)
-        run.lateral_colour = estimate_lateral_colour(small, run.aperture)
-        if run.lateral_colour == NO_LATERAL_COLOUR:
-            run.small, run.factor = small, factor
-    elif isinstance(wanted, tuple):  # calibrated, in parts per thousand
-        (rx, ry), (bx, by) = wanted
-        run.lateral_colour = LateralColour(((rx / 1e3, ry / 1e3), (0.0, 0.0), (bx / 1e3, by / 1e3)), 0)
-    run.planes = remove_lateral_colour(run.planes, run.lateral_colour)
-    run.recorder.record(
-        "planes", planes=run.planes, pixel_scale=run.pixel_scale, lateral_colour=run.lateral_colour.describe()
-    )
+    run.recorder.record("planes", planes=run.planes, pixel_scale=run.pixel_scale)
 
 
 def _disparity(run: _Run) -> None:
-    if not hasattr(run, "small"):  # not made by the planes stage already
-        run.small, run.factor = _analysis_grid(run.planes, run.params.analysis_max_side_px)
+    wanted = run.aperture.lateral_colour
+    measure = run.params.lateral_colour or wanted == "measure"
+    if isinstance(wanted, tuple) and not measure:  # calibrated, in parts per thousand
+        (rx, ry), (bx, by) = wanted
+        run.lateral_colour = LateralColour(((rx / 1e3, ry / 1e3), (0.0, 0.0), (bx / 1e3, by / 1e3)), 0)
+        run.planes = remove_lateral_colour(run.planes, run.lateral_colour)
+    run.small, run.factor = _analysis_grid(run.planes, run.params.analysis_max_side_px)
     run.to_input = float(run.factor * run.pixel_scale)
     height, width = run.shape
     range_in = run.disparity_range_px or default_disparity_range_px(
         run.aperture, run.optics, (int(height * run.pixel_scale), int(width * run.pixel_scale))
     )
     range_an = (range_in[0] / run.to_input, range_in[1] / run.to_input)
+    quick = None
+    if measure:
+        # read on the analysis grid (the magnifications hold at every size) on tiles of one depth (the quick
+        # search's), taken out at every size; the quick search serves the dense one's range too
+        quick = quick_disparity(run.small, run.aperture, range_an, run.params.dense)
+        run.lateral_colour = estimate_lateral_colour(run.small, run.aperture, disparity_px=quick)
+        run.planes = remove_lateral_colour(run.planes, run.lateral_colour)
+        run.small = remove_lateral_colour(run.small, run.lateral_colour)
     refine = run.params.refine
     run.inputs = cost_input(run.small, run.params.dense.noise_model or (refine is not None and refine.noise_model))
-    run.dense = estimate_dense(run.small, run.aperture, range_an, run.params.dense, run.inputs)
+    run.dense = estimate_dense(run.small, run.aperture, range_an, run.params.dense, run.inputs, quick)
     low, high = run.dense.search_range_px
     run.recorder.record(
         "disparity",
@@ -351,6 +350,7 @@ def _disparity(run: _Run) -> None:
         confidence=run.dense.confidence,
         analysis_scale=float(run.factor),
         search_range_px=(low * run.to_input, high * run.to_input),
+        lateral_colour=run.lateral_colour.describe(),
     )
 
 

@@ -134,6 +134,23 @@ def test_a_reading_no_magnification_makes_is_refused() -> None:
     assert estimate_lateral_colour(magnified(content, odd), PROFILE.aperture) == NO_LATERAL_COLOUR
 
 
+def test_only_tiles_of_one_surface_are_read_when_depth_is_given() -> None:
+    """A quarter-size disparity map (as the quick search gives) of a slanted plane with an occluding step in
+    it: tiles on the slant are read, tiles across the step are not."""
+    from mca.processing.chromatic import _one_depth
+
+    h, w, tile = 512, 768, 64
+    xs = np.arange(w // 4, dtype=np.float32)
+    quarter = np.broadcast_to(0.01 * 4 * xs, (h // 4, w // 4)).copy()  # 0.01 px per px: 7.7 px across
+    quarter[:, 100:] += 3.0  # a 3-px step at x = 400
+    corners = np.stack(np.meshgrid(np.arange(0, h - tile + 1, 32), np.arange(0, w - tile + 1, 32), indexing="ij"), -1)
+    corners = corners.reshape(-1, 2)
+    one = _one_depth(quarter, (h, w), corners, tile)
+    straddles = (corners[:, 1] < 400) & (corners[:, 1] + tile > 400)
+    assert not one[straddles].any()
+    assert one[~straddles].all()
+
+
 def test_largest_displacement_is_at_the_corners() -> None:
     colour = LateralColour(((1e-3, 0.0), (0.0, 0.0), (0.0, -2e-3)), 10)
     assert colour.largest_displacement_px((101, 201)) == pytest.approx(0.1)
