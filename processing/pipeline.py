@@ -85,8 +85,10 @@ class PipelineParams:
             return cls()
         if quality == "preview":
             return cls(
-                analysis_max_side_px=640,
-                surfaces=SurfaceParams(superpixel_px=400, sweeps=5),
+                # a 20 MP capture's 2736-px planes go to a grid 6x smaller (456 px, as 1368-px renders, whose
+                # figures docs/evaluation.md gives); 4 SLIC iterations: disparity and regions in under 0.5 s
+                analysis_max_side_px=512,
+                surfaces=SurfaceParams(superpixel_px=400, sweeps=5, slic_iterations=4),
                 refine=RefineParams(coarse_step_px=0.75, fine_step_px=0.25),
                 boundaries=None,
             )
