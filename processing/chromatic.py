@@ -35,7 +35,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-import scipy.fft
 
 from mca.processing.camera import FilterAperture
 from mca.processing.disparity import channel_shifts
@@ -64,6 +63,12 @@ class LateralColour:
         half_h, half_w = (shape[0] - 1) / 2.0, (shape[1] - 1) / 2.0
         return max(float(np.hypot(kx * half_w, ky * half_h)) for kx, ky in self.k)
 
+    @classmethod
+    def from_ppt(cls, red: tuple[float, float], blue: tuple[float, float]) -> LateralColour:
+        """Calibrated magnifications (kx, ky) of red and blue in parts per thousand, as `describe` gives them
+        and a profile's `aperture.lateral_colour` holds them."""
+        return cls(((red[0] / 1e3, red[1] / 1e3), (0.0, 0.0), (blue[0] / 1e3, blue[1] / 1e3)), 0)
+
     def describe(self) -> dict[str, float]:
         """The magnifications, for the recording and the logs (parts per thousand)."""
         names = ("red", "green", "blue")
@@ -74,9 +79,10 @@ NO_LATERAL_COLOUR = LateralColour(((0.0, 0.0), (0.0, 0.0), (0.0, 0.0)), 0)
 
 
 def _edge_strength(planes: np.ndarray) -> list[np.ndarray]:
-    """Gradient magnitude of each channel's log plane, smoothed by 1 px."""
-    white = float(np.percentile(planes, 99.5)) or 1.0
-    log = np.log1p(np.clip(planes, 0.0, None).astype(np.float32) * np.float32(32.0 / white))
+    """Gradient magnitude of each channel's log plane (`features.log_compress`), smoothed by 1 px."""
+    from mca.processing.features import log_compress  # here: it loads numba, which start-up need not
+
+    log = log_compress(planes)
     out = []
     for c in range(3):
         smooth = cv2.GaussianBlur(np.ascontiguousarray(log[..., c]), (0, 0), 1.0)
@@ -95,6 +101,8 @@ def _tiles(plane: np.ndarray, corners: np.ndarray, tile: int) -> np.ndarray:
 
 def _spectra(tiles: np.ndarray) -> np.ndarray:
     """Windowed, zero-mean half spectra of (N, tile, tile) crops (float32 transforms on every core)."""
+    import scipy.fft  # here, not at import: `processing.result` imports this module on every start-up
+
     window = cv2.createHanningWindow(tiles.shape[1:][::-1], cv2.CV_32F)[None]
     centred = (tiles - tiles.mean(axis=(1, 2), keepdims=True, dtype=np.float32)) * window
     return scipy.fft.rfft2(centred.astype(np.float32, copy=False), workers=-1)
@@ -105,6 +113,8 @@ def _peak_offsets(reference: np.ndarray, moving: np.ndarray, tile: int) -> tuple
     matches `reference`(p); the height of the correlation peak (1 for a perfect match); and how well the
     tile's content pins a displacement down in each direction, (Ixx, Ixy, Iyy) (the weighted second moments
     of its frequencies: edges all one way pin down only the displacement across them)."""
+    import scipy.fft
+
     cross = moving * np.conj(reference)
     magnitude = np.abs(cross)
     cross /= magnitude + np.float32(1e-12)

@@ -324,8 +324,7 @@ def _disparity(run: _Run) -> None:
     wanted = run.aperture.lateral_colour
     measure = run.params.lateral_colour or wanted == "measure"
     if isinstance(wanted, tuple) and not measure:  # calibrated, in parts per thousand
-        (rx, ry), (bx, by) = wanted
-        run.lateral_colour = LateralColour(((rx / 1e3, ry / 1e3), (0.0, 0.0), (bx / 1e3, by / 1e3)), 0)
+        run.lateral_colour = LateralColour.from_ppt(*wanted)
         run.planes = remove_lateral_colour(run.planes, run.lateral_colour)
     run.small, run.factor = _analysis_grid(run.planes, run.params.analysis_max_side_px)
     run.to_input = float(run.factor * run.pixel_scale)
