@@ -22,7 +22,8 @@ from dataclasses import dataclass
 import cv2
 import numba as nb
 import numpy as np
-from skimage.segmentation import slic
+
+from mca.processing.slic import slic_labels
 
 
 @dataclass(frozen=True)
@@ -96,17 +97,11 @@ def plane_map(
 
 
 def superpixels(image: np.ndarray, params: SurfaceParams = SurfaceParams()) -> np.ndarray:
-    """(H, W) int32 SLIC labels 0..n-1 of an (H, W, 3) float image in [0, 1], about `superpixel_px` pixels each."""
+    """(H, W) int32 SLIC labels 0..n-1 of an (H, W, 3) float image in [0, 1], about `superpixel_px` pixels each
+    (scikit-image's SLIC, computed on both cores by `processing.slic`)."""
     h, w = image.shape[:2]
     count = max(4, int(round(h * w / params.superpixel_px)))
-    labels = slic(
-        image,
-        n_segments=count,
-        compactness=params.compactness,
-        start_label=0,
-        channel_axis=-1,
-        max_num_iter=params.slic_iterations,
-    )
+    labels = slic_labels(np.asarray(image, np.float32), count, params.compactness, params.slic_iterations)
     _, dense = np.unique(labels, return_inverse=True)
     return dense.reshape(h, w).astype(np.int32)
 
