@@ -248,6 +248,24 @@ def run_pipeline(
     return run.result()
 
 
+def load_kernels(aperture: FilterAperture, optics: MCAOptics | None = None, quality: str = "full") -> float:
+    """Run the pipeline once on a small synthetic capture, so that every compiled kernel it takes is loaded
+    (from numba's cache, or compiled on the very first run). Returns the seconds it took.
+
+    A fresh process spends about a second loading kernels the first time each is called; `mca process`
+    does this on a helper thread while the photograph is being read (`capture.pipeline_app`), so that the
+    pipeline then finds them loaded. Nothing of it is kept: the answers are the same with or without it."""
+    started = time.perf_counter()
+    rng = np.random.default_rng(0)
+    texture = rng.random((_KERNEL_SHAPE[0], _KERNEL_SHAPE[1], 3)).astype(np.float32)
+    planes = cv2.GaussianBlur(texture, (0, 0), 1.5) + np.float32(0.2)
+    run_pipeline(planes, aperture, optics, params=PipelineParams.for_quality(quality))
+    return time.perf_counter() - started
+
+
+_KERNEL_SHAPE = (192, 256)  # large enough for every stage to run its kernels (quarter size >= 24 px)
+
+
 @dataclass
 class _Run:
     """One capture on its way through the stages: what came in, then what each stage made."""

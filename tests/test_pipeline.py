@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -290,3 +292,54 @@ def test_the_feature_bands_and_noise_of_the_analysis_grid_are_made_once(monkeypa
     assert shapes.count(grid) == 1 and noisy.count(grid) == 1, (grid, shapes)
     assert len(shapes) == len(set(shapes)) == 3  # the grid, its half for the coarse cost, its quarter for the range
     assert np.isfinite(result.disparity_px).all()
+
+
+_KERNELS_SCRIPT = """
+import sys
+import numba
+import numpy as np
+sys.path.insert(0, sys.argv[1])
+from mca_scenes import two_boxes_scene
+import mca.processing as package
+import pkgutil, importlib
+from mca.devices.profiles import load_profile
+from mca.processing.optics import MCAOptics
+from mca.processing.pipeline import PipelineParams, load_kernels, run_pipeline
+
+modules = [importlib.import_module(f"mca.processing.{m.name}") for m in pkgutil.iter_modules(package.__path__)]
+kernels = {f"{m.__name__}.{k}": v for m in modules for k, v in vars(m).items()
+           if isinstance(v, numba.core.registry.CPUDispatcher)}
+profile = load_profile("paper-70d")
+optics = MCAOptics.from_profile(profile, pixel_pitch_mm=profile.pixel_pitch_mm)
+quality = sys.argv[2]
+load_kernels(profile.aperture, optics, quality)
+before = {name: len(k.signatures) for name, k in kernels.items()}
+image, _, _ = two_boxes_scene(profile.aperture)
+run_pipeline(image, profile.aperture, optics, params=PipelineParams.for_quality(quality))
+new = [name for name, k in kernels.items() if len(k.signatures) > before[name]]
+used = [name for name, n in before.items() if n > 0]
+print("NEW", ",".join(new))
+print("USED", len(used))
+"""
+
+
+@pytest.mark.parametrize("quality", ["full", "preview"])
+def test_load_kernels_loads_every_kernel_the_pipeline_then_takes(tmp_path, quality):
+    """`load_kernels` (run by `mca process` on a helper thread while it reads the photograph) on its small
+    synthetic capture loads every compiled kernel, for every argument type, that a real capture then calls:
+    in a fresh process, the pipeline on a scene of four objects at four depths, with optics, adds none."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "kernels.py"
+    script.write_text(_KERNELS_SCRIPT)
+    done = subprocess.run(
+        [sys.executable, str(script), str(Path(__file__).parent), quality],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    lines = dict(line.split(" ", 1) if " " in line else (line, "") for line in done.stdout.splitlines())
+    assert lines["NEW"].strip() == ""
+    assert int(lines["USED"]) >= 10  # the dense search, the aggregation, SLIC, the surfaces, the refinement ...
