@@ -725,32 +725,43 @@ def _optics_for(profile: CameraProfile, loaded: LoadedInput):
 
 
 _kernels_loading = threading.Lock()
-_kernels_started = False
+_kernels_thread: threading.Thread | None = None
 
 
 def _load_kernels_once(profile: CameraProfile, quality: str) -> None:
     """The first time in this process: load the pipeline's compiled kernels (`processing.pipeline.load_kernels`)
     on a daemon thread, so that they load while the first photograph is being read (about half a second
-    saved on a one-file `mca process`). A failure there costs nothing: the pipeline loads what it needs."""
-    global _kernels_started
+    saved on a one-file `mca process`). A failure there costs nothing: the pipeline loads what it needs.
+    `_wait_for_kernels` waits for it before any pipeline runs."""
+    global _kernels_thread
     with _kernels_loading:
-        if _kernels_started:
+        if _kernels_thread is not None:
             return
-        _kernels_started = True
+        _kernels_thread = threading.Thread(target=lambda: _load_kernels(profile, quality), name="mca-load-kernels")
+        _kernels_thread.daemon = True
+        _kernels_thread.start()
 
-    def load() -> None:
-        from mca.processing.optics import MCAOptics
-        from mca.processing.pipeline import load_kernels
 
-        try:
-            optics = None
-            if profile.lens is not None and profile.pixel_pitch_mm is not None:
-                optics = MCAOptics.from_profile(profile, pixel_pitch_mm=profile.pixel_pitch_mm)
-            load_kernels(profile.aperture, optics, quality)
-        except Exception:  # only a head start: the pipeline itself reports whatever is really wrong
-            pass
+def _wait_for_kernels() -> None:
+    """Until the helper of `_load_kernels_once` is done (at once when there is none or it is finished)."""
+    thread = _kernels_thread
+    if thread is not None:
+        thread.join()
 
-    threading.Thread(target=load, name="mca-load-kernels", daemon=True).start()
+
+def _load_kernels(profile: CameraProfile, quality: str) -> None:
+    """The helper's work: `load_kernels` with the profile's aperture, optics (at its own pixel pitch) and
+    `quality`."""
+    from mca.processing.optics import MCAOptics
+    from mca.processing.pipeline import load_kernels
+
+    try:
+        optics = None
+        if profile.lens is not None and profile.pixel_pitch_mm is not None:
+            optics = MCAOptics.from_profile(profile, pixel_pitch_mm=profile.pixel_pitch_mm)
+        load_kernels(profile.aperture, optics, quality)
+    except Exception:  # only a head start: the pipeline itself reports whatever is really wrong
+        pass
 
 
 def _default_pipeline() -> PipelineFunction:
@@ -1032,6 +1043,7 @@ def _process(
     t0 = time.perf_counter()
     loaded = read_input(input_path)
     timings["read"] = time.perf_counter() - t0
+    _wait_for_kernels()  # never two parallel kernels at once: numba's fallback thread pool cannot take it
     _announce(on_stage, "read")
     optics = _optics_for(profile, loaded)
     camera = api.camera_for(optics, loaded)
