@@ -152,8 +152,9 @@ def _connected(labels: np.ndarray, min_size: int, max_size: int) -> np.ndarray:
 
 
 def slic_labels(image: np.ndarray, n_segments: int, compactness: float, iterations: int) -> np.ndarray:
-    """(H, W) int64 labels 0.. of an (H, W, 3) RGB float image in [0, 1]: scikit-image's
-    `slic(image, n_segments, compactness, max_num_iter=iterations, start_label=0, channel_axis=-1)`."""
+    """(H, W) int64 labels 0..n-1, every one of them used, of an (H, W, 3) RGB float image in [0, 1]:
+    scikit-image's `slic(image, n_segments, compactness, max_num_iter=iterations, start_label=0,
+    channel_axis=-1)`."""
     from skimage.color import rgb2lab
     from skimage.util import regular_grid
 
@@ -175,8 +176,8 @@ def slic_labels(image: np.ndarray, n_segments: int, compactness: float, iteratio
     slices = regular_grid((1, h, w), n_segments)
     steps = [int(s.step) if s.step is not None else 1 for s in slices]
     float_steps = [float(s.step) if s.step is not None else 1.0 for s in slices]
-    grid_z, grid_y, grid_x = np.mgrid[:1, :h, :w]
-    centres = np.stack([g[slices].ravel() for g in (grid_z, grid_y, grid_x)], axis=1)
+    axes = [np.arange(n)[s] for n, s in zip((1, h, w), slices, strict=True)]  # the seeds' rows and columns
+    centres = np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], axis=1)
     segments = np.zeros((centres.shape[0], 6), np.float32)
     segments[:, :3] = centres
     step = np.float32(max(float_steps))  # a C float in scikit-image's signature

@@ -101,9 +101,10 @@ def superpixels(image: np.ndarray, params: SurfaceParams = SurfaceParams()) -> n
     (scikit-image's SLIC, computed on both cores by `processing.slic`)."""
     h, w = image.shape[:2]
     count = max(4, int(round(h * w / params.superpixel_px)))
-    labels = slic_labels(np.asarray(image, np.float32), count, params.compactness, params.slic_iterations)
-    _, dense = np.unique(labels, return_inverse=True)
-    return dense.reshape(h, w).astype(np.int32)
+    # the connectivity pass numbers the pieces it keeps 0, 1, ... in raster order: dense already
+    return slic_labels(np.asarray(image, np.float32), count, params.compactness, params.slic_iterations).astype(
+        np.int32
+    )
 
 
 def interior_weights(labels: np.ndarray, margin_px: int) -> np.ndarray:
