@@ -195,8 +195,12 @@ def refine_regions(
     tilt = planar & ~flat  # slanted planar regions: the plane itself is refined
     free = ~planar  # curved regions: a planar correction of their surfaces
 
-    def solve(minima: np.ndarray, strength: np.ndarray) -> np.ndarray:
-        """Per region: the correction (a, b, c) to add to the model, fitted to its cells' minima."""
+    corners = _bounding_corners(labels, count)
+
+    def solve(minima: np.ndarray, strength: np.ndarray, searched_px: float) -> np.ndarray:
+        """Per region: the correction (a, b, c) to add to the model, fitted to its cells' minima. A sloped
+        correction that goes beyond twice the range searched (+-`searched_px`) at a corner of the region's
+        bounding box is extrapolation from cells close together, not data: the region takes a level instead."""
         correction = np.zeros((count, 3))
         for rid in range(1, count):
             sel = (bin_region == rid) & (strength > 0)
@@ -207,20 +211,21 @@ def refine_regions(
                 # cell minima are precise to a few hundredths of a pixel, a few of them bad: a negligible
                 # ridge, and cells beyond 2 sigmas + 0.05 px of the plane dropped
                 zeros = np.zeros(vote.size, np.int64)
-                correction[rid] = fit_planes_at(
-                    zeros, bin_x[sel], bin_y[sel], minima[sel], vote, 1, 1e-6, 3, 0.02, 2.0, 0.05
-                )[0]
-            else:
-                correction[rid, 2] = _robust_level(minima[sel], vote)
+                plane = fit_planes_at(zeros, bin_x[sel], bin_y[sel], minima[sel], vote, 1, 1e-6, 3, 0.02, 2.0, 0.05)[0]
+                reach = np.abs(corners[rid] @ plane[:2] + plane[2]).max()
+                if reach <= 2.0 * searched_px:
+                    correction[rid] = plane
+                    continue
+            correction[rid, 2] = _robust_level(minima[sel], vote)
         return correction
 
     coarse = np.arange(-params.search_px, params.search_px + 1e-9, params.coarse_step_px)
     minima, strength = _parabola_minima(curves(current, coarse), coarse)
-    first = solve(minima, strength)
+    first = solve(minima, strength, params.search_px)
     after_first = _apply(current, labels, first, xs, ys)
     fine = np.arange(-2, 3) * params.fine_step_px
     minima, strength = _parabola_minima(curves(after_first, fine), fine)
-    second = solve(minima, strength)
+    second = solve(minima, strength, 2 * params.fine_step_px)
     final = _apply(after_first, labels, second, xs, ys)
     total = first + second
 
@@ -235,6 +240,20 @@ def refine_regions(
         offsets[rid] = float(total[rid, 0] * cx_region[rid] + total[rid, 1] * cy_region[rid] + total[rid, 2])
     corrections = {rid: (float(total[rid, 0]), float(total[rid, 1]), float(total[rid, 2])) for rid in range(1, count)}
     return Refinement(final, result_planes, corrections, offsets)
+
+
+def _bounding_corners(labels: np.ndarray, count: int) -> np.ndarray:
+    """(count, 4, 2) float64: the (x, y) corners of each label's bounding box (zeros for an absent label)."""
+    corners = np.zeros((count, 4, 2))
+    for axis in (0, 1):  # columns, then rows, in which each label is present
+        coords = np.arange(labels.shape[1 - axis])
+        present = np.zeros((count, coords.size), bool)
+        present[labels, coords[None, :] if axis == 0 else coords[:, None]] = True
+        seen = present.any(axis=1)
+        low = np.where(seen, present.argmax(axis=1), 0)
+        high = np.where(seen, coords.size - 1 - present[:, ::-1].argmax(axis=1), 0)
+        corners[:, :, axis] = np.stack([low, high, low, high] if axis == 0 else [low, low, high, high], axis=1)
+    return corners
 
 
 def _apply(

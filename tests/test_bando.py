@@ -74,3 +74,36 @@ def test_dog_books_wall_and_boxes_are_regions_apart(dog):
             region_id = int(dog.labels[y, x])
             assert owner.setdefault(region_id, name) == name, (name, (x, y), owner[region_id])
     assert len({int(dog.labels[y, x]) for x, y in points["dog"]}) == 1
+
+
+def test_sheep_regions_corrections_stay_within_what_the_refinement_searched(monkeypatch):
+    """The refinement fits each region's correction to its cells' cost minima, which lie within the offsets it
+    searched (+-1.5 px, then +-0.3 px). On `sheep.png` a small region at the top left had cells whose centroids lay
+    a few pixels apart: the plane through them sloped 0.58 px per px and reached -17 and +11 px at the region's
+    corners, a streak across the dense map. Corrections now stay within twice each pass's range everywhere in
+    the region's bounding box."""
+    import cv2
+
+    from mca.processing import pipeline, refine
+
+    path = DATA / "sheep.png"
+    if not path.exists():
+        pytest.skip(f"Bando 2008 sample photographs not found at {DATA} (kept out of the repository)")
+    seen = {}
+
+    def spy(bands, aperture, labels, model, params, **kwargs):
+        seen["labels"], seen["params"] = labels, params
+        seen["out"] = refine.refine_regions(bands, aperture, labels, model, params, **kwargs)
+        return seen["out"]
+
+    monkeypatch.setattr(pipeline, "refine_regions", spy)
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)[..., ::-1].astype(np.float32) / 255.0
+    run_pipeline(srgb_to_linear(image), load_profile("bando2008").aperture, None)
+    labels, params = seen["labels"], seen["params"]
+    limit = 2 * params.search_px + 2 * (2 * params.fine_step_px)
+    reach = {}
+    for rid, (a, b, c) in seen["out"].corrections.items():
+        ys, xs = np.nonzero(labels == rid)
+        corners = np.array([[x, y] for x in (xs.min(), xs.max()) for y in (ys.min(), ys.max())], np.float64)
+        reach[rid] = float(np.abs(corners @ np.array([a, b]) + c).max())
+    assert reach and max(reach.values()) <= limit, reach
