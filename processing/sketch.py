@@ -30,7 +30,7 @@ class SketchParams:
 
     continuity_px: float = 0.6  # neighbouring regions whose planes meet within this (mean over the boundary) join
     colour_distance: float = 0.35  # ... when their mean display colours are at most this far apart
-    same_depth_px: float = 0.0  # then regions whose planes meet within this join whatever their colours (0: off)
+    same_depth_px: float = 0.2  # then regions whose planes meet within this join whatever their colours (0: off)
     split_valley: float = 0.3  # a region whose pixel levels' valley is below this share of its peaks splits (0: off)
     split_fraction: float = 0.01  # ... into parts of at least this fraction of the image
     min_region_fraction: float = 0.002  # smaller regions join a neighbour

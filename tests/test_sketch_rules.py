@@ -67,11 +67,20 @@ def test_neighbours_join_when_continuous_and_alike(gap_px, colour, regions):
     assert len(s.regions) == regions
 
 
-def test_the_same_depth_pass_joins_unlike_neighbours_when_asked():
-    surfaces = surfaces_of(halves(), {0: 1.0, 1: 1.3}, {0: GREY, 1: RED})
-    assert len(sketch(surfaces).regions) == 2  # off by default
-    assert len(sketch(surfaces, SketchParams(same_depth_px=0.5)).regions) == 1
-    assert len(sketch(surfaces, SketchParams(same_depth_px=0.2)).regions) == 2  # 0.3 px apart
+@pytest.mark.parametrize(
+    ("gap_px", "same_depth_px", "regions"),
+    [
+        (0.15, 0.2, 1),  # unlike colours, planes within same_depth_px (the default, 0.2): one surface
+        (0.3, 0.2, 2),  # 0.3 px apart: two, as unlike colours keep them
+        (0.3, 0.5, 1),
+        (0.15, 0.0, 2),  # the pass off
+    ],
+)
+def test_the_same_depth_pass_joins_unlike_neighbours_whose_planes_meet(gap_px, same_depth_px, regions):
+    surfaces = surfaces_of(halves(), {0: 1.0, 1: 1.0 + gap_px}, {0: GREY, 1: RED})
+    assert len(sketch(surfaces, SketchParams(same_depth_px=same_depth_px)).regions) == regions
+    if same_depth_px == SketchParams().same_depth_px:
+        assert len(sketch(surfaces).regions) == regions
 
 
 def test_a_small_region_joins_the_neighbour_it_continues_whatever_its_colour():
@@ -143,9 +152,9 @@ def test_sketch_params_are_frozen():
         SketchParams().continuity_px = 1.0  # type: ignore[misc]
 
 
-def test_equal_depths_of_unlike_colours_stay_apart_by_default():
-    s = sketch(surfaces_of(halves(), {0: 2.0, 1: 2.0}, {0: GREY, 1: RED}))
-    assert len(s.regions) == 2
+def test_equal_depths_of_unlike_colours_are_one_surface_by_default():
+    # the sketch's regions are surfaces apart in depth: two colours on one plane (a printed box) are one region
+    assert len(sketch(surfaces_of(halves(), {0: 2.0, 1: 2.0}, {0: GREY, 1: RED})).regions) == 1
 
 
 @pytest.mark.parametrize(("width_px", "sliver"), [(11, True), (12, False)])
