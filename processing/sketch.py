@@ -8,7 +8,8 @@ join two objects with every link continuous; such a region's pixel levels fall i
 and it splits at that valley (`split_valley`: the histogram of its levels, smoothed at a quarter of
 `continuity_px`, falls below that share of the lower of the peaks either side) when each side is one level
 (the sketch's layers; a slanted floor with an object on it has a valley at the object's levels, but two slopes
-either side of it). Each region
+either side of it). Parts of one surface that a nearer object cuts apart (a knife under a carrot) are not
+neighbours; they join when their colours are close and one plane fits both (`occluded_join_px`). Each region
 gets a robust plane fitted to the surface disparity (slanted objects keep their slant) and a representative
 disparity at its centroid. Where two regions meet, the one with the smaller disparity along the boundary is
 nearer and occludes the other (T-junctions and depth steps alike); the order is nearest first.
@@ -33,6 +34,8 @@ class SketchParams:
     same_depth_px: float = 0.2  # then regions whose planes meet within this join whatever their colours (0: off)
     split_valley: float = 0.3  # a region whose pixel levels' valley is below this share of its peaks splits (0: off)
     split_fraction: float = 0.01  # ... into parts of at least this fraction of the image
+    occluded_join_px: float = 0.15  # parts of one surface a nearer region cuts apart join (0: off) when one
+    occluded_colour_distance: float = 0.1  # plane fits both within this RMS and their colours are this close
     min_region_fraction: float = 0.002  # smaller regions join a neighbour
     sliver_fraction: float = 0.01  # a region smaller than this ...
     sliver_width_px: float = 12.0  # ... and on average thinner (2 area / boundary) is a rim sliver
@@ -254,6 +257,85 @@ def _split_at_valleys(surfaces: Surfaces, disparity: np.ndarray, root: np.ndarra
     return root
 
 
+def _plane_moments(labels: np.ndarray, values: np.ndarray, count: int) -> np.ndarray:
+    """(count, 10) sums of 1, x, y, v, xx, xy, yy, xv, yv, vv over each label's pixels (labels 0..count-1)."""
+    h, w = labels.shape
+    flat = labels.ravel()
+    xs = np.tile(np.arange(w, dtype=np.float64), h)
+    ys = np.repeat(np.arange(h, dtype=np.float64), w)
+    v = values.ravel().astype(np.float64)
+    terms = (None, xs, ys, v, xs * xs, xs * ys, ys * ys, xs * v, ys * v, v * v)
+    return np.stack([np.bincount(flat, t, count) for t in terms], axis=1)
+
+
+def _plane_rms(m: np.ndarray) -> float:
+    """Root-mean-square residual of the least-squares plane through the pixels whose moments `m` sums."""
+    n = m[0]
+    normal = np.array([[m[4], m[5], m[1]], [m[5], m[6], m[2]], [m[1], m[2], n]])
+    rhs = np.array([m[7], m[8], m[3]])
+    coef = np.linalg.lstsq(normal, rhs, rcond=None)[0]
+    return float(np.sqrt(max(m[9] - coef @ rhs, 0.0) / n))
+
+
+def _extra_plane_rms(a: np.ndarray, b: np.ndarray) -> float:
+    """How much worse (RMS, px) one plane fits the pixels of two regions than each region's own plane does."""
+    own = (a[0] * _plane_rms(a) ** 2 + b[0] * _plane_rms(b) ** 2) / (a[0] + b[0])
+    return float(np.sqrt(max(_plane_rms(a + b) ** 2 - own, 0.0)))
+
+
+def _join_occluded_parts(
+    surfaces: Surfaces, gaps: np.ndarray, disparity: np.ndarray, root: np.ndarray, params: SketchParams
+) -> np.ndarray:
+    """Regions that do not touch but share a neighbour that is not behind either of them (by more than
+    `occlusion_margin_px`: an occluder, or an object that crosses their depth there) join when their colours are
+    within `occluded_colour_distance` and one plane fits both within `occluded_join_px` (RMS, beyond what their
+    own planes leave): the parts of one surface that a nearer object cuts apart (a knife under a carrot, the
+    wall either side of a pole). Two alike objects in front of a wall stay apart: the wall is behind them.
+    Closest fits first; a pair joins only if the plane still fits what each side has joined so far."""
+    ids, region_of = np.unique(root, return_inverse=True)
+    n = ids.size
+    if n < 3:
+        return root
+    area = np.bincount(region_of, surfaces.areas.astype(np.float64), n)
+    colour_sum = np.stack([np.bincount(region_of, surfaces.colours[:, k] * surfaces.areas, n) for k in range(3)], 1)
+    colour = colour_sum / np.maximum(area, 1.0)[:, None]
+    gap_sum: dict[tuple[int, int], list[float]] = {}
+    for (i, j), gap, length in zip(surfaces.pairs, gaps, surfaces.pair_lengths, strict=True):
+        ri, rj = int(region_of[i]), int(region_of[j])
+        if ri != rj:  # the mean of P_rj - P_ri, kept for both orders
+            for key, signed in (((ri, rj), gap), ((rj, ri), -gap)):
+                entry = gap_sum.setdefault(key, [0.0, 0.0])
+                entry[0] += signed * length
+                entry[1] += length
+    in_front_of: dict[int, set[int]] = {}  # a region -> the neighbours it is not behind
+    for (o, r), (weighted, length) in gap_sum.items():
+        if weighted / length > -params.occlusion_margin_px:
+            in_front_of.setdefault(o, set()).add(r)
+    candidates = set()
+    for hidden in in_front_of.values():
+        for a in hidden:
+            for b in hidden:
+                if a < b and (a, b) not in gap_sum:  # not neighbours themselves
+                    candidates.add((a, b))
+    alike = [(a, b) for a, b in candidates if np.linalg.norm(colour[a] - colour[b]) <= params.occluded_colour_distance]
+    if not alike:
+        return root
+    # every other pixel along both axes: plenty for a fit's RMS, and a quarter of the sums
+    moments = _plane_moments(region_of[surfaces.labels[::2, ::2]], disparity[::2, ::2], n)
+    scored = [(_extra_plane_rms(moments[a], moments[b]), a, b) for a, b in alike]
+    sets = _UnionFind(n)
+    for extra, a, b in sorted(scored):
+        if extra > params.occluded_join_px:
+            break
+        ra, rb = sets.find(a), sets.find(b)
+        if ra != rb and _extra_plane_rms(moments[ra], moments[rb]) <= params.occluded_join_px:
+            keep, gone = min(ra, rb), max(ra, rb)
+            sets.parent[gone] = keep
+            moments[keep] += moments[gone]
+    joined = np.array([sets.find(k) for k in range(n)])
+    return ids[joined][region_of]
+
+
 def _level_spread_px(values: np.ndarray) -> float:
     """Root-mean-square distance of `values` from their median: how far a part is from being one level."""
     return float(np.sqrt(np.mean((values - np.median(values)) ** 2)))
@@ -301,6 +383,8 @@ def build_sketch(
     root = _merge_continuous(surfaces, abs_gaps, params)
     if params.split_valley > 0:
         root = _split_at_valleys(surfaces, disparity, root, params)
+    if params.occluded_join_px > 0:
+        root = _join_occluded_parts(surfaces, gaps, disparity, root, params)
     roots, superpixel_region = np.unique(root, return_inverse=True)
     superpixel_region = (superpixel_region + 1).astype(np.int32)
     labels = superpixel_region[surfaces.labels]

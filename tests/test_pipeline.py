@@ -180,14 +180,10 @@ def _evaluate_paper_scene(name: str, scale: float, seed: int = 0):
     return evaluate_scene(rendering.truth, rendering.labels, result, optics.mca), result
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="known gap of the dense pipeline (issue 12): paper-e comes out as 9 regions for 6 (tomato rims, the "
-    "spatula in pieces), occlusion 1 over 5 missed; docs/pipeline.md",
-)
 def test_paper_e_spatula_is_one_region_behind_its_three_occluders():
     """The wooden spatula (+102 mm, wood close to the wall's colour) is cut in three by a tomato and the carrot
-    and partly hidden by the other tomato: one region, behind all three, at the right depth (full size, as
+    and partly hidden by the other tomato: one region (the sketch joins the parts the occluders cut apart),
+    behind all three, at the right depth (full size, as
     `mca evaluate`; at half size the per-region crop refinement reads the tomato D ~8 % far, a known gap
     logged in docs/pipeline.md)."""
     evaluation, _ = _evaluate_paper_scene("paper-e", 1.0)
@@ -199,14 +195,10 @@ def test_paper_e_spatula_is_one_region_behind_its_three_occluders():
     assert rows["C"].abs_error_mm("ours") < 2.0  # the carrot, in focus
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="known gap of the dense pipeline (issue 12): paper-g's knife comes out as 2 regions (4 for 3), ends "
-    "4.9 % / 2.6 % off; docs/pipeline.md",
-)
 def test_paper_g_slanted_knife_is_one_plane():
     """The knife (a flat blade from -30 to +100 mm, its middle hidden by the carrot) is one slanted region whose
-    plane gives both ends (full size, the issue's setting)."""
+    plane gives both ends (full size, the issue's setting): the carrot cuts it in two parts that do not touch,
+    and the sketch joins them because one plane fits both and they are one colour."""
     evaluation, result = _evaluate_paper_scene("paper-g", 1.0)
     assert evaluation.region_count == evaluation.true_region_count == 3  # knife, carrot, wall
     assert evaluation.order_correct, evaluation.notes

@@ -272,3 +272,44 @@ def test_plane_occlusions_come_from_the_regions_own_planes():
     occludes, gaps = plane_occlusions(labels, regions, 0.5)
     assert occludes == {1: [2], 2: [], 3: []}  # 2 and 3 are 0.2 px apart along their boundary: neither
     assert gaps[(1, 2)] == pytest.approx(1.0) and gaps[(2, 3)] == pytest.approx(0.195, abs=1e-9)
+
+
+def cut_in_two(
+    part_planes: tuple[tuple[float, float, float], tuple[float, float, float]],
+    part_colours: tuple[tuple[float, float, float], tuple[float, float, float]] = (GREY, GREY),
+    strip_level: float = 0.5,
+) -> Surfaces:
+    """A surface cut in two by a vertical strip: superpixel 0 left (columns 0-129), 1 the strip (130-169, red, a
+    level), 2 right (170-299); the parts' planes and colours as given."""
+    labels = np.zeros((40, 300), np.int32)
+    labels[:, 130:170] = 1
+    labels[:, 170:] = 2
+    surfaces = surfaces_of(labels, {0: 0.0, 1: strip_level, 2: 0.0}, {0: part_colours[0], 1: RED, 2: part_colours[1]})
+    surfaces.planes[0], surfaces.planes[2] = part_planes
+    surfaces.fitted[:] = surfaces.planes
+    return surfaces
+
+
+KNIFE = (0.01, 0.0, 2.0)  # 3.3-3.7 px where the strip (0.5 px) hides it: the strip is nearer
+
+
+def test_the_parts_of_a_surface_a_nearer_region_cuts_apart_are_one_region():
+    s = sketch(cut_in_two((KNIFE, KNIFE)))
+    assert len(s.regions) == 2
+    assert s.superpixel_region[0] == s.superpixel_region[2] != s.superpixel_region[1]
+    knife = s.region(int(s.superpixel_region[0]))
+    np.testing.assert_allclose(knife.plane, KNIFE, atol=1e-3)  # one plane through both parts
+    assert s.order[knife.id] > s.order[int(s.superpixel_region[1])]  # behind the strip
+    assert len(sketch(cut_in_two((KNIFE, KNIFE)), SketchParams(occluded_join_px=0.0)).regions) == 3  # off
+
+
+@pytest.mark.parametrize(
+    ("planes", "colours", "strip_level", "why"),
+    [
+        ((KNIFE, KNIFE), (GREY, (0.5, 0.5, 0.75)), 0.5, "colours 0.25 apart: two materials"),
+        (((0.0, 0.0, 2.0), (0.0, 0.0, 3.0)), (GREY, GREY), 0.5, "two levels 1 px apart: one plane fits 0.22 px worse"),
+        (((0.0, 0.0, 2.0), (0.0, 0.0, 2.0)), (GREY, GREY), 10.0, "the strip is behind: two objects in front of it"),
+    ],
+)
+def test_parts_apart_stay_apart_unless_alike_on_one_plane_behind_an_occluder(planes, colours, strip_level, why):
+    assert len(sketch(cut_in_two(planes, colours, strip_level)).regions) == 3, why
