@@ -108,3 +108,28 @@ def test_sheep_regions_corrections_stay_within_what_the_refinement_searched(monk
         corners = np.array([[x, y] for x in (xs.min(), xs.max()) for y in (ys.min(), ys.max())], np.float64)
         reach[rid] = float(np.abs(corners @ np.array([a, b]) + c).max())
     assert reach and max(reach.values()) <= limit, reach
+
+
+# The main object of each of the other three photographs, and points off it (input pixels, x, y)
+MAIN_OBJECTS = {
+    "sheep.png": {"object": [(150, 300), (450, 200), (290, 165), (300, 420)], "off": [(560, 50), (600, 300)]},
+    "chair.png": {"object": [(350, 200), (420, 380), (300, 120)], "off": [(100, 300), (100, 40)]},
+    "bonsai.png": {"object": [(300, 200), (500, 280), (200, 300)], "off": [(250, 50), (650, 350), (50, 150)]},
+}
+
+
+@pytest.mark.parametrize("name", sorted(MAIN_OBJECTS))
+def test_each_photographs_main_object_is_one_region(name):
+    """The sheep (body, head, ear, legs' top), the chair's back and the bonsai's crown: each one region, which
+    holds none of the points on the background behind it."""
+    import cv2
+
+    path = DATA / name
+    if not path.exists():
+        pytest.skip(f"Bando 2008 sample photographs not found at {DATA} (kept out of the repository)")
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)[..., ::-1].astype(np.float32) / 255.0
+    result = run_pipeline(srgb_to_linear(image), load_profile("bando2008").aperture, None)
+    points = MAIN_OBJECTS[name]
+    regions = {int(result.labels[y, x]) for x, y in points["object"]}
+    assert len(regions) == 1, regions
+    assert not regions & {int(result.labels[y, x]) for x, y in points["off"]}
