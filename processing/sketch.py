@@ -283,6 +283,22 @@ def _extra_plane_rms(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.sqrt(max(_plane_rms(a + b) ** 2 - own, 0.0)))
 
 
+def _region_pair_gaps(surfaces: Surfaces, gaps: np.ndarray, region_of: np.ndarray) -> dict[tuple[int, int], float]:
+    """Mean signed plane gap P_j - P_i along the whole boundary of each pair of neighbouring regions (i < j),
+    weighted by length, from the superpixel pairs' mean gaps `gaps`; `region_of` is each superpixel's region."""
+    region_gap: dict[tuple[int, int], list[float]] = {}
+    for (i, j), gap, length in zip(surfaces.pairs, gaps, surfaces.pair_lengths, strict=True):
+        ri, rj = int(region_of[i]), int(region_of[j])
+        if ri == rj:
+            continue
+        key = (min(ri, rj), max(ri, rj))
+        signed = gap if ri < rj else -gap
+        entry = region_gap.setdefault(key, [0.0, 0.0])
+        entry[0] += signed * length
+        entry[1] += length
+    return {key: weighted / max(length, 1e-9) for key, (weighted, length) in region_gap.items()}
+
+
 def _join_occluded_parts(
     surfaces: Surfaces, gaps: np.ndarray, disparity: np.ndarray, root: np.ndarray, params: SketchParams
 ) -> np.ndarray:
@@ -299,23 +315,18 @@ def _join_occluded_parts(
     area = np.bincount(region_of, surfaces.areas.astype(np.float64), n)
     colour_sum = np.stack([np.bincount(region_of, surfaces.colours[:, k] * surfaces.areas, n) for k in range(3)], 1)
     colour = colour_sum / np.maximum(area, 1.0)[:, None]
-    gap_sum: dict[tuple[int, int], list[float]] = {}
-    for (i, j), gap, length in zip(surfaces.pairs, gaps, surfaces.pair_lengths, strict=True):
-        ri, rj = int(region_of[i]), int(region_of[j])
-        if ri != rj:  # the mean of P_rj - P_ri, kept for both orders
-            for key, signed in (((ri, rj), gap), ((rj, ri), -gap)):
-                entry = gap_sum.setdefault(key, [0.0, 0.0])
-                entry[0] += signed * length
-                entry[1] += length
+    pair_gap = _region_pair_gaps(surfaces, gaps, region_of)
     in_front_of: dict[int, set[int]] = {}  # a region -> the neighbours it is not behind
-    for (o, r), (weighted, length) in gap_sum.items():
-        if weighted / length > -params.occlusion_margin_px:
-            in_front_of.setdefault(o, set()).add(r)
+    for (i, j), mean in pair_gap.items():  # mean P_j - P_i
+        if mean > -params.occlusion_margin_px:
+            in_front_of.setdefault(i, set()).add(j)
+        if mean < params.occlusion_margin_px:
+            in_front_of.setdefault(j, set()).add(i)
     candidates = set()
     for hidden in in_front_of.values():
         for a in hidden:
             for b in hidden:
-                if a < b and (a, b) not in gap_sum:  # not neighbours themselves
+                if a < b and (a, b) not in pair_gap:  # not neighbours themselves
                     candidates.add((a, b))
     alike = [(a, b) for a, b in candidates if np.linalg.norm(colour[a] - colour[b]) <= params.occluded_colour_distance]
     if not alike:
@@ -429,18 +440,7 @@ def build_sketch(
             )
         )
     # occlusion: along each region boundary the nearer side (smaller disparity) occludes the other
-    region_gap: dict[tuple[int, int], list[float]] = {}
-    lengths = surfaces.pair_lengths
-    for (i, j), gap, length in zip(surfaces.pairs, gaps, lengths, strict=True):
-        ri, rj = int(superpixel_region[i]), int(superpixel_region[j])
-        if ri == rj:
-            continue
-        key = (min(ri, rj), max(ri, rj))
-        signed = gap if ri < rj else -gap
-        entry = region_gap.setdefault(key, [0.0, 0.0])
-        entry[0] += signed * length
-        entry[1] += length
-    pair_gap = {key: weighted / max(length, 1e-9) for key, (weighted, length) in region_gap.items()}
+    pair_gap = _region_pair_gaps(surfaces, gaps, superpixel_region)
     occludes = _occlusions(pair_gap, [r.id for r in regions], params.occlusion_margin_px)
     ranked = sorted(regions, key=lambda r: r.disparity_px)
     order = {r.id: rank for rank, r in enumerate(ranked)}
