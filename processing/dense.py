@@ -5,7 +5,10 @@
    false matches far outside the scene).
 2. Cost: the colour-line cost (`processing.cost`) of the feature planes at every candidate, plus the same cost
    computed at half size and brought back up (weak, fine texture is backed by coarser structure: upscaled or
-   noisy content has little signal at the finest scale).
+   noisy content has little signal at the finest scale). Each pixel's cost curve is scaled by how much of its
+   window is signal rather than sensor noise (`features.signal_weight`, from the noise model): on a texture-less
+   surface the curve is the noise's, as deep at a wrong disparity as at the right one, and summed along the
+   aggregation's paths it outvoted the few textured pixels that know the surface's disparity.
 3. Aggregation: eight-path semi-global aggregation (`processing.sgm`) spreads the evidence of textured
    pixels along the image; textureless ones take it from their neighbours.
 4. Winner and sub-pixel: the lowest aggregated cost, refined by a parabola through it and its neighbours.
@@ -25,7 +28,7 @@ import numpy as np
 
 from mca.processing.camera import FilterAperture
 from mca.processing.cost import CostInput, cost_input, cost_volume
-from mca.processing.features import display_gamma
+from mca.processing.features import display_gamma, signal_weight
 from mca.processing.sgm import aggregate
 
 _PATHS = 8  # semi-global aggregation paths: an isolated jump costs about this many P2
@@ -42,10 +45,19 @@ class DenseParams:
     p1: float = 0.2  # SGM penalty of a one-step disparity change (cost units, for 0.5 px steps)
     p2: float = 3.0  # SGM penalty of a larger jump (for 0.5 px steps)
     alpha: float = 0.0  # how much image edges lower P2
+    # the guide of the edge-adaptive P2 (`alpha`): steps of any colour channel (else of the mean brightness), less
+    # `noise_steps` robust sigmas of its pixel-to-pixel steps. Options, off: with alpha 100 and 3 sigmas they
+    # help weakly textured renders (docs/evaluation.md) but put a paper scene's in-focus object 2.5 mm off
+    colour_guide: bool = False
+    noise_steps: float = 0.0
     narrow_range: bool = True  # find the occupied range on a quarter-size image first
     range_margin_px: float = 2.0  # kept around the occupied range
     sampling: str = "bilinear"  # the cost's sampler, "bilinear" or "bspline" (`processing.cost` says when which)
     noise_model: bool = True  # measure the sensor noise and take its sampling bias out of the cost (`processing.cost`)
+    # a pixel's cost counts by its window's signal-to-noise ratio s as s / (s + this) (`features.signal_weight`;
+    # needs the noise model): noise alone 0, this ratio one half; 0 = every pixel's cost counts fully. 0.1 of
+    # 0.1-2 tried on the tuning renders: lower helps weakly textured content more; 0.5 splits dog.png's wall
+    half_weight_snr: float = 0.1
 
 
 @dataclass
@@ -85,11 +97,19 @@ def _volume_dhw(
 
 @nb.njit(cache=True, parallel=True, fastmath=True)
 def _blend_kernel(
-    fine: np.ndarray, coarse: np.ndarray, w_fine: float, w_coarse: float, out: np.ndarray, first: int
+    fine: np.ndarray,
+    coarse: np.ndarray,
+    w_fine: float,
+    w_coarse: float,
+    weight: np.ndarray,
+    out: np.ndarray,
+    first: int,
 ) -> None:
-    """out[y, x, first + d] = w_fine fine[d, y, x] + w_coarse (coarse[d] brought up bilinearly)[y, x]."""
+    """out[y, x, first + d] = weight[y, x] (w_fine fine[d, y, x] + w_coarse (coarse[d] brought up bilinearly)[y, x]),
+    weight 1 where `weight` is empty."""
     d_count, h, w = fine.shape
     _, ch, cw = coarse.shape
+    weighted = weight.shape[0] > 0
     sy, sx = ch / h, cw / w
     for y in nb.prange(h):
         fy = max((y + 0.5) * sy - 0.5, 0.0)
@@ -104,9 +124,10 @@ def _blend_kernel(
             a, b = (1.0 - ty) * (1.0 - tx), (1.0 - ty) * tx
             c, e = ty * (1.0 - tx), ty * tx
             o = out[y, x]
+            k = weight[y, x] if weighted else 1.0
             for d in range(d_count):
                 up = a * coarse[d, y0, x0] + b * coarse[d, y0, x1] + c * coarse[d, y1, x0] + e * coarse[d, y1, x1]
-                o[first + d] = w_fine * fine[d, y, x] + w_coarse * up
+                o[first + d] = k * (w_fine * fine[d, y, x] + w_coarse * up)
 
 
 _CHUNK = 16  # candidates computed at a time: a (16, H, W) buffer used again, written out 64 bytes per pixel
@@ -120,7 +141,9 @@ def _cost_hwd(
     inputs: CostInput | None = None,
 ) -> np.ndarray:
     """The (H, W, D) volume the aggregation takes: the cost of `planes` at `candidates`, averaged with the cost
-    at half size brought up bilinearly (pixel centres aligned, as cv2.resize; weight `params.coarse_weight`).
+    at half size brought up bilinearly (pixel centres aligned, as cv2.resize; weight `params.coarse_weight`),
+    each pixel's curve scaled by its `features.signal_weight` (`params.half_weight_snr`; when `inputs` carry a
+    noise model).
 
     The full-size cost is made `_CHUNK` candidates at a time into one buffer and blended into place: at 20 MP a
     whole (D, H, W) volume beside the (H, W, D) one would be another quarter of a gigabyte to allocate."""
@@ -134,12 +157,15 @@ def _cost_hwd(
         w_fine, w_coarse = 1.0, 0.0
     if inputs is None:
         inputs = cost_input(planes, params.noise_model)  # once, for every chunk
+    weight = np.zeros((0, 0), np.float32)
+    if params.half_weight_snr > 0 and inputs.noise is not None:
+        weight = signal_weight(inputs.bands, inputs.noise, params.window_px, params.half_weight_snr)
     out = np.empty((h, w, count), np.float32)
     buffer = np.empty((min(_CHUNK, count), h, w), np.float32)
     for first in range(0, count, _CHUNK):
         last = min(first + _CHUNK, count)
         fine = _volume_dhw(planes, aperture, candidates[first:last], params, inputs, buffer[: last - first])
-        _blend_kernel(fine, coarse[first:last], w_fine, w_coarse, out, first)
+        _blend_kernel(fine, coarse[first:last], w_fine, w_coarse, weight, out, first)
     return out
 
 
@@ -220,6 +246,13 @@ def occupied_range(
     return (max(range_px[0], low), min(range_px[1], high))
 
 
+def _step_sigma(guide: np.ndarray) -> float:
+    """Robust sigma (1.4826 x median absolute value) of the guide's horizontal pixel-to-pixel steps, the largest
+    over its channels: what noise and fine texture make, beside the steps of object edges."""
+    steps = np.abs(np.diff(guide.reshape(guide.shape[0], guide.shape[1], -1), axis=1))
+    return float(1.4826 * max(np.median(steps[..., c]) for c in range(steps.shape[2])))
+
+
 def estimate_dense(
     planes: np.ndarray,
     aperture: FilterAperture,
@@ -236,12 +269,16 @@ def estimate_dense(
     candidates = candidate_disparities(search, params.step_px)
     volume = _cost_hwd(planes, aperture, candidates, params, inputs)
     scale = params.step_px / 0.5  # penalties are given for 0.5 px steps
+    guide = display_gamma(planes)
+    if not params.colour_guide:
+        guide = guide.mean(axis=2)
     aggregated = aggregate(
         volume,
-        display_gamma(planes).mean(axis=2),
+        guide,
         params.p1 * scale,
         params.p2 * scale,
         params.alpha,
+        params.noise_steps * _step_sigma(guide) if params.noise_steps > 0 else 0.0,
     )
     del volume
     disparity, confidence = _winner(aggregated, candidates, _PATHS * params.p2 * scale)

@@ -4,7 +4,8 @@ The colour-line cost (`processing.cost`) compares the channels' local structure,
 channel is log-compressed (exposure and shading become offsets) and reduced to three band-pass planes, its
 horizontal and vertical derivatives at a fine scale and a difference of Gaussians. Zero local mean lets the
 cost use uncentred correlations; the fine blur band-limits the planes for sampling at sub-pixel shifts
-(`processing.cost`). `texture_energy` says how much there is to align at each pixel.
+(`processing.cost`). `texture_energy` says how much there is to align at each pixel, `signal_weight` how much of
+it is signal rather than sensor noise.
 """
 
 from __future__ import annotations
@@ -222,6 +223,25 @@ def texture_energy(bands: list[np.ndarray], window_px: int) -> np.ndarray:
         total += np.sum(band * band, axis=2)
     mean = cv2.boxFilter(total, cv2.CV_32F, (window_px, window_px), borderType=cv2.BORDER_REFLECT)
     return np.sqrt(np.maximum(mean / np.float32(3 * len(bands)), 0.0))
+
+
+def signal_weight(bands: list[np.ndarray], noise: FeatureNoise, window_px: int, half_snr: float) -> np.ndarray:
+    """(H, W) float32 in [0, 1): how much of each window's structure is signal rather than sensor noise,
+    s / (s + `half_snr`), s = E / N - 1 the window's signal-to-noise ratio: E the feature energy in the window,
+    N what `noise` expects of the noise alone there. A window of noise alone (E about N) weighs about 0, one
+    whose signal carries `half_snr` times the noise energy 0.5, strong texture about 1.
+
+    Unlike `texture_energy`, this does not depend on what the rest of the image holds: on a photograph of
+    texture-less surfaces most windows hold noise alone, and their colour-alignment cost says nothing."""
+    total = np.zeros(bands[0].shape[:2], np.float32)
+    for band in bands:
+        total += np.sum(band * band, axis=2)
+    size = (window_px, window_px)
+    energy = cv2.boxFilter(total, cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
+    noise_sum = np.asarray(np.sum(noise.variance, axis=0), np.float32) * np.float32(np.sum(noise.band_gain))
+    noise_energy = cv2.boxFilter(noise_sum, cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
+    snr = np.maximum(energy / np.maximum(noise_energy, np.float32(1e-30)) - np.float32(1.0), np.float32(0.0))
+    return (snr / (snr + np.float32(half_snr))).astype(np.float32)
 
 
 def display_gamma(planes: np.ndarray) -> np.ndarray:

@@ -40,7 +40,7 @@ from mca.processing.cost import CostInput, cost_input
 from mca.processing.dense import DenseDisparity, DenseParams, estimate_dense, quick_disparity
 from mca.processing.depth import depth_map_mm, region_depth
 from mca.processing.disparity import parallel_map, warp_channels
-from mca.processing.features import display_gamma, texture_energy
+from mca.processing.features import display_gamma, signal_weight, texture_energy
 from mca.processing.mpi import all_in_focus, multi_plane_images
 from mca.processing.optics import MCAOptics
 from mca.processing.refine import Refinement, RefineParams, refine_regions
@@ -70,7 +70,9 @@ class PipelineParams:
     dense: DenseParams = field(default_factory=DenseParams)
     surfaces: SurfaceParams = field(default_factory=SurfaceParams)
     sketch: SketchParams = field(default_factory=SketchParams)
-    evidence: str = "texture"  # what weighs a pixel's dense disparity in the surfaces: "texture", "confidence", "none"
+    # what weighs a pixel's dense disparity in the surfaces: "texture" (texture beside the image's median),
+    # "signal" (its window's signal-to-noise weight, `features.signal_weight`), "confidence", "none"
+    evidence: str = "texture"
     refine: RefineParams | None = field(default_factory=RefineParams)  # None: the surfaces' disparity as it is
     boundaries: BoundaryParams | None = field(default_factory=BoundaryParams)  # None: superpixel outlines as they are
     # measure the lens's lateral colour in each capture and take it out first (`processing.chromatic`) even
@@ -375,7 +377,7 @@ def _disparity(run: _Run) -> None:
 
 def _surfaces(run: _Run) -> None:
     run.aligned = display_gamma(warp_channels(run.small, run.aperture, run.dense.disparity_px))
-    evidence = _evidence(run.inputs, run.dense, run.params.evidence)
+    evidence = _evidence(run.inputs, run.dense, run.params.evidence, run.params.dense.half_weight_snr)
     run.surfaces = build_surfaces(run.aligned, run.dense.disparity_px, run.params.surfaces, evidence=evidence)
     run.recorder.record("surfaces", labels=run.surfaces.labels, count=run.surfaces.count)
 
@@ -492,13 +494,20 @@ def _region_models(sketch: Sketch, refined: np.ndarray) -> dict[int, np.ndarray]
     return models
 
 
-def _evidence(inputs: CostInput, dense: DenseDisparity, kind: str) -> np.ndarray | None:
-    """How much each pixel's dense disparity is worth: its texture relative to the image's median texture
-    (saturating at 1), or the dense confidence."""
+def _evidence(inputs: CostInput, dense: DenseDisparity, kind: str, half_snr: float) -> np.ndarray | None:
+    """How much each pixel's dense disparity is worth: how much of its window is signal rather than noise
+    (`features.signal_weight`, half at `half_snr`; "signal", when the inputs carry the noise model, else as
+    "texture"), its texture relative to the image's median texture (saturating at 1), or the dense confidence.
+
+    Why "signal": on a photograph of texture-less surfaces the median window holds noise alone, and beside that
+    median, noise looked like texture: a wall's noisy disparities weighed as much as the edges that knew its
+    disparity."""
     if kind == "none":
         return None
     if kind == "confidence":
         return dense.confidence
+    if kind == "signal" and inputs.noise is not None and half_snr > 0:
+        return signal_weight(inputs.bands, inputs.noise, 9, half_snr)
     energy = texture_energy(inputs.bands, 9)
     return np.clip(energy / (float(np.median(energy)) + 1e-9), 0.0, 1.0).astype(np.float32)
 

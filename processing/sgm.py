@@ -4,7 +4,8 @@ Along each path r the aggregated cost is
     L_r(p, d) = C(p, d) + min(L_r(p-r, d), L_r(p-r, d +- 1) + P1, min_k L_r(p-r, k) + P2(p)) - min_k L_r(p-r, k),
 and the paths are summed. P1 charges a one-step change of disparity (slanted and curved surfaces), P2 any
 larger jump; P2 shrinks where the guide image changes (an object boundary), P2(p) = max(1.5 P1,
-P2 / (1 + alpha |I(p) - I(p-r)|)). Compiled with numba: the volume is (H, W, D) with D contiguous, each
+P2 / (1 + alpha max(max_c |I_c(p) - I_c(p-r)| - floor, 0))) over the guide's channels, floor the steps noise
+makes. Compiled with numba: the volume is (H, W, D) with D contiguous, each
 path is a sweep over columns (horizontal paths, parallel over rows) or over rows: the three downward paths
 (vertical and diagonal) in one sweep and the three upward ones in another, each row of a sweep shared out
 among the threads by columns. Every path adds into one output volume: no second volume of the cost's size is
@@ -35,12 +36,17 @@ def _step(c: np.ndarray, prev: np.ndarray, prev_min: float, p1: float, p2: float
 
 
 @nb.njit(cache=True, fastmath=True, inline="always")
-def _penalty(p1: float, p2: float, alpha: float, g0: float, g1: float) -> float:
-    return max(p2 / (1.0 + alpha * abs(g0 - g1)), 1.5 * p1)
+def _penalty(p1: float, p2: float, alpha: float, floor: float, g0: np.ndarray, g1: np.ndarray) -> float:
+    """P2 at a step from guide pixel g1 to g0 (each a vector of channels): the largest channel's step counts,
+    less `floor` (the steps noise makes)."""
+    step = 0.0
+    for c in range(g0.shape[0]):
+        step = max(step, abs(g0[c] - g1[c]))
+    return max(p2 / (1.0 + alpha * max(step - floor, 0.0)), 1.5 * p1)
 
 
 @nb.njit(cache=True, fastmath=True, inline="always")
-def _vertical_row(cost, guide, p1, p2, alpha, out, y, yp, x0, x1, prev, prev_min, cur, cur_min):
+def _vertical_row(cost, guide, p1, p2, alpha, floor, out, y, yp, x0, x1, prev, prev_min, cur, cur_min):
     """Row y of the three paths with predecessors in row yp (path k: (yp, x - dx_k), dx = 0, +1, -1) for the
     columns x0..x1 - 1; their sum is added into `out`."""
     w, count = cost.shape[1], cost.shape[2]
@@ -57,7 +63,7 @@ def _vertical_row(cost, guide, p1, p2, alpha, out, y, yp, x0, x1, prev, prev_min
                     m = min(m, c[d])
                 cur_min[k, x] = m
             else:
-                pen = _penalty(p1, p2, alpha, guide[y, x], guide[yp, xp])
+                pen = _penalty(p1, p2, alpha, floor, guide[y, x], guide[yp, xp])
                 cur_min[k, x] = _step(c, prev[k, xp], prev_min[k, xp], p1, pen, row)
     for x in range(x0, x1):
         o = out[y, x]
@@ -66,7 +72,7 @@ def _vertical_row(cost, guide, p1, p2, alpha, out, y, yp, x0, x1, prev, prev_min
 
 
 @nb.njit(cache=True, parallel=True, fastmath=True)
-def _vertical_sweep(cost, guide, p1, p2, alpha, out, dy, chunks):
+def _vertical_sweep(cost, guide, p1, p2, alpha, floor, out, dy, chunks):
     """The three paths with a vertical component dy (+1: top to bottom) in one sweep over the rows, their sum
     added into `out`. Each row is shared out among the threads in `chunks` column blocks; a row starts when
     the one before it is done (its predecessors are there)."""
@@ -94,6 +100,7 @@ def _vertical_sweep(cost, guide, p1, p2, alpha, out, dy, chunks):
                 p1,
                 p2,
                 alpha,
+                floor,
                 out,
                 y,
                 y - dy,
@@ -107,7 +114,7 @@ def _vertical_sweep(cost, guide, p1, p2, alpha, out, dy, chunks):
 
 
 @nb.njit(cache=True, parallel=True, fastmath=True)
-def _columns_pass(cost, guide, p1, p2, alpha, out, dx, assign):
+def _columns_pass(cost, guide, p1, p2, alpha, floor, out, dx, assign):
     """Horizontal paths: every row on its own, x in order (dx = +1: left to right); `assign`: the path's values
     replace those in `out`, else they are added."""
     h, w, count = cost.shape
@@ -122,7 +129,7 @@ def _columns_pass(cost, guide, p1, p2, alpha, out, dx, assign):
             m = min(m, prev[d])
         for i in range(1, w):
             x = x0 + dx * i
-            pen = _penalty(p1, p2, alpha, guide[y, x], guide[y, x - dx])
+            pen = _penalty(p1, p2, alpha, floor, guide[y, x], guide[y, x - dx])
             m = _step(cost[y, x], prev, m, p1, pen, row)  # type: ignore[assignment,arg-type]  # numba unifies float32 and float
             o = out[y, x]
             for d in range(count):
@@ -130,18 +137,23 @@ def _columns_pass(cost, guide, p1, p2, alpha, out, dx, assign):
                 prev[d] = row[d]
 
 
-def aggregate(cost_hwd: np.ndarray, guide: np.ndarray, p1: float, p2: float, alpha: float = 0.0) -> np.ndarray:
+def aggregate(
+    cost_hwd: np.ndarray, guide: np.ndarray, p1: float, p2: float, alpha: float = 0.0, step_floor: float = 0.0
+) -> np.ndarray:
     """Sum over the eight paths of the semi-global aggregation of `cost_hwd` (H, W, D) float32.
 
-    `guide` (H, W) float32 image whose steps lower P2 (object boundaries); `alpha` scales that effect
-    (0: constant P2)."""
+    `guide` (H, W) or (H, W, C) float32 image whose steps lower P2 (object boundaries; of a colour guide, the
+    largest channel's step: two colours of one brightness still meet at an edge); `alpha` scales that effect
+    (0: constant P2); steps up to `step_floor` (what noise makes) do not count."""
     cost = np.ascontiguousarray(cost_hwd, dtype=np.float32)
     guide = np.ascontiguousarray(guide, dtype=np.float32)
+    if guide.ndim == 2:
+        guide = guide[..., None]
     out = np.empty_like(cost)  # every value written by the first pass
-    a, q1, q2 = np.float32(alpha), np.float32(p1), np.float32(p2)
-    _columns_pass(cost, guide, q1, q2, a, out, 1, True)
-    _columns_pass(cost, guide, q1, q2, a, out, -1, False)
+    a, q1, q2, f = np.float32(alpha), np.float32(p1), np.float32(p2), np.float32(step_floor)
+    _columns_pass(cost, guide, q1, q2, a, f, out, 1, True)
+    _columns_pass(cost, guide, q1, q2, a, f, out, -1, False)
     chunks = max(1, nb.get_num_threads())
-    _vertical_sweep(cost, guide, q1, q2, a, out, 1, chunks)
-    _vertical_sweep(cost, guide, q1, q2, a, out, -1, chunks)
+    _vertical_sweep(cost, guide, q1, q2, a, f, out, 1, chunks)
+    _vertical_sweep(cost, guide, q1, q2, a, f, out, -1, chunks)
     return out

@@ -75,8 +75,8 @@ def test_the_b_spline_sampler_removes_the_noise_bias_of_full_colour_input():
 @pytest.mark.parametrize("shape", [(40, 64), (37, 51)])
 def test_the_coarse_cost_comes_back_up_as_opencv_resizes_it(shape):
     """The fused blend (fine volume averaged with the half-size one brought up, transposed to (H, W, D) in one
-    pass, one chunk of candidates at a time) against OpenCV's bilinear resize of each slice, on odd and even
-    sizes."""
+    pass, one chunk of candidates at a time, each pixel scaled by its weight when weights are given) against
+    OpenCV's bilinear resize of each slice, on odd and even sizes."""
     from mca.processing.dense import _blend_kernel
 
     rng = np.random.default_rng(5)
@@ -85,10 +85,12 @@ def test_the_coarse_cost_comes_back_up_as_opencv_resizes_it(shape):
     coarse = rng.random((7, (h + 1) // 2, (w + 1) // 2), dtype=np.float32)
     up = np.stack([cv2.resize(s, (w, h), interpolation=cv2.INTER_LINEAR) for s in coarse])
     expected = ((fine + 0.5 * up) / 1.5).transpose(1, 2, 0)
-    blended = np.full((h, w, 7), np.nan, np.float32)
-    for first, last in ((0, 4), (4, 7)):
-        _blend_kernel(fine[first:last], coarse[first:last], 1 / 1.5, 0.5 / 1.5, blended, first)
-    assert np.abs(blended - expected).max() < 1e-5
+    weight = rng.random((h, w), dtype=np.float32)
+    for given, scale in ((np.zeros((0, 0), np.float32), 1.0), (weight, weight[..., None])):
+        blended = np.full((h, w, 7), np.nan, np.float32)
+        for first, last in ((0, 4), (4, 7)):
+            _blend_kernel(fine[first:last], coarse[first:last], 1 / 1.5, 0.5 / 1.5, given, blended, first)
+        assert np.abs(blended - expected * scale).max() < 1e-5
 
 
 def test_the_chunked_volume_is_the_whole_volume_blended():
@@ -117,3 +119,25 @@ def test_the_chunked_volume_is_the_whole_volume_blended():
     assert np.abs(got - expected).max() < 1e-5
     alone = _cost_hwd(planes, APERTURE, candidates, DenseParams(coarse_weight=0.0), inputs)
     assert np.array_equal(alone, fine.transpose(1, 2, 0))
+
+
+@pytest.mark.parametrize("seed", [1, 3])
+def test_a_one_colour_wall_framed_by_texture_takes_the_frames_disparity_despite_the_noise(seed):
+    """A plane at +3 px whose middle is one flat colour (a painted wall) and whose 16-px frame is textured, with
+    strong sensor noise. The wall's cost curves are the noise's: unweighted, their chance minima, summed along
+    the aggregation's paths, put 5 % or more of the wall elsewhere; weighted by their signal
+    (`DenseParams.half_weight_snr`), the wall takes the frame's disparity."""
+    shape = (220, 320)
+    frame = texture(shape, 1, colour=(0.5, 0.4, 0.3), contrast=0.35)
+    wall = np.zeros(shape + (3,), np.float32)
+    wall[:] = (0.3, 0.45, 0.6)
+    inside = np.zeros(shape, np.float32)
+    inside[16:-16, 16:-16] = 1.0
+    clean = render_layers([(frame, np.ones(shape, np.float32), 3.0), (wall, inside, 3.0)], shape, APERTURE)
+    noisy = clean + np.random.default_rng(seed).normal(0.0, 0.02, clean.shape).astype(np.float32)
+    wrong = {}
+    for half in (0.0, DenseParams().half_weight_snr):
+        result = estimate_dense(noisy, APERTURE, (-12.0, 12.0), DenseParams(half_weight_snr=half))
+        wrong[half] = float(np.mean(np.abs(result.disparity_px[30:-30, 30:-30] - 3.0) > 1.0))
+    assert wrong[0.0] > 0.05, wrong
+    assert wrong[DenseParams().half_weight_snr] < 0.01, wrong

@@ -163,3 +163,26 @@ def test_the_measured_noise_follows_every_object_of_a_rendered_scene():
             truth = float(np.var(difference[..., c][mask]))
             measured = float(np.median(model.variance[c][mask]))
             assert 0.7 < measured / truth < 1.5, (int(k), c, measured, truth)
+
+
+@pytest.mark.parametrize("sigma", [0.005, 0.02])
+def test_the_signal_weight_is_near_zero_on_noise_alone_and_near_one_on_texture(sigma):
+    """`features.signal_weight` against what was rendered: a flat grey plane plus noise is noise alone (weight
+    about 0), a textured one plus the same noise is signal (about 1), at either noise level; a texture with a
+    tenth of the contrast lies between."""
+    from mca.processing.features import signal_weight
+
+    rng = np.random.default_rng(11)
+    shape = (200, 240)
+    weights = {}
+    for name, clean in (
+        ("flat", np.full(shape + (3,), 0.4, np.float32)),
+        ("faint", texture(shape, 3, colour=(0.4, 0.4, 0.4), contrast=0.35 * sigma / 0.02 * 0.3)),
+        ("textured", texture(shape, 3, colour=(0.4, 0.4, 0.4), contrast=0.35)),
+    ):
+        noisy = clean + rng.normal(0.0, sigma, clean.shape).astype(np.float32)
+        bands = feature_bands(noisy)
+        weights[name] = float(np.median(signal_weight(bands, feature_noise(noisy, bands), 9, 1.0)))
+    assert weights["flat"] < 0.15, weights
+    assert weights["textured"] > 0.95, weights
+    assert weights["flat"] + 0.2 < weights["faint"] < weights["textured"] - 0.02, weights

@@ -9,9 +9,13 @@ from mca.processing.sgm import aggregate
 DIRECTIONS = [(0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (1, -1), (-1, 1), (-1, -1)]
 
 
-def reference(cost: np.ndarray, guide: np.ndarray, p1: float, p2: float, alpha: float) -> np.ndarray:
-    """Hirschmueller's recurrence along each of the eight directions (dy, dx), summed."""
+def reference(
+    cost: np.ndarray, guide: np.ndarray, p1: float, p2: float, alpha: float, floor: float = 0.0
+) -> np.ndarray:
+    """Hirschmueller's recurrence along each of the eight directions (dy, dx), summed; a colour guide's step is
+    its largest channel's, less `floor`."""
     h, w, count = cost.shape
+    guide = guide.reshape(h, w, -1)
     total = np.zeros_like(cost, dtype=np.float64)
     for dy, dx in DIRECTIONS:
         path = np.zeros_like(total)
@@ -25,7 +29,8 @@ def reference(cost: np.ndarray, guide: np.ndarray, p1: float, p2: float, alpha: 
                     continue
                 prev = path[py, px]
                 best = prev.min()
-                pen2 = max(p2 / (1 + alpha * abs(guide[y, x] - guide[py, px])), 1.5 * p1)
+                step = max(float(np.max(np.abs(guide[y, x] - guide[py, px]))) - floor, 0.0)
+                pen2 = max(p2 / (1 + alpha * step), 1.5 * p1)
                 for d in range(count):
                     options = [prev[d], best + pen2]
                     if d > 0:
@@ -44,6 +49,18 @@ def test_eight_paths_equal_the_written_out_recurrence():
     for p1, p2, alpha in ((0.1, 0.8, 0.0), (0.3, 2.0, 3.0)):
         got = aggregate(cost, guide, p1, p2, alpha)
         assert np.allclose(got, reference(cost, guide, p1, p2, alpha), atol=1e-4)
+
+
+def test_a_colour_guide_counts_its_largest_channel_step_less_the_noise_floor():
+    rng = np.random.default_rng(3)
+    cost = rng.random((7, 9, 5)).astype(np.float32)
+    colour = rng.random((7, 9, 3)).astype(np.float32)
+    for floor in (0.0, 0.3):
+        got = aggregate(cost, colour, 0.3, 2.0, 5.0, floor)
+        assert np.allclose(got, reference(cost, colour, 0.3, 2.0, 5.0, floor), atol=1e-4)
+    # two colours of one brightness: the grey guide sees no edge, the colour guide does
+    grey_of_colour = np.repeat(colour.mean(axis=2, keepdims=True), 3, axis=2)
+    assert not np.allclose(aggregate(cost, colour, 0.3, 2.0, 5.0), aggregate(cost, grey_of_colour, 0.3, 2.0, 5.0))
 
 
 def test_aggregation_recovers_two_surfaces_from_sparse_evidence():
