@@ -47,7 +47,7 @@ class DenseParams:
     alpha: float = 0.0  # how much image edges lower P2
     # the guide of the edge-adaptive P2 (`alpha`): steps of any colour channel (else of the mean brightness), less
     # `noise_steps` robust sigmas of its pixel-to-pixel steps. Options, off: with alpha 100 and 3 sigmas they
-    # help weakly textured renders (docs/evaluation.md) but put a paper scene's in-focus object 2.5 mm off
+    # help weakly textured renders (docs/evaluation.md) but put two paper scenes' in-focus objects 2.2-2.5 mm off
     colour_guide: bool = False
     noise_steps: float = 0.0
     narrow_range: bool = True  # find the occupied range on a quarter-size image first
