@@ -499,9 +499,9 @@ def _evidence(inputs: CostInput, dense: DenseDisparity, kind: str, half_snr: flo
     (`features.signal_weight`, half at `half_snr`; "signal", when the inputs carry the noise model, else as
     "texture"), its texture relative to the image's median texture (saturating at 1), or the dense confidence.
 
-    Why "signal": on a photograph of texture-less surfaces the median window holds noise alone, and beside that
-    median, noise looked like texture: a wall's noisy disparities weighed as much as the edges that knew its
-    disparity."""
+    What "signal" is for: on a photograph of texture-less surfaces the median window holds noise alone, and beside
+    that median noise looks like texture, so a wall's noisy disparities weigh as much as the edges that know its
+    disparity. It is an option, off: it split `dog.png`'s regions (docs/evaluation.md)."""
     if kind == "none":
         return None
     if kind == "confidence":

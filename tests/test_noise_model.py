@@ -186,3 +186,23 @@ def test_the_signal_weight_is_near_zero_on_noise_alone_and_near_one_on_texture(s
     assert weights["flat"] < 0.15, weights
     assert weights["textured"] > 0.95, weights
     assert weights["flat"] + 0.2 < weights["faint"] < weights["textured"] - 0.02, weights
+
+
+def test_the_signal_evidence_is_the_signal_weight_and_without_a_noise_model_the_texture():
+    """`PipelineParams.evidence = "signal"` weighs the surfaces' pixels by `features.signal_weight`; inputs
+    without a noise model fall back to the texture evidence rather than failing."""
+    from mca.processing.cost import cost_input
+    from mca.processing.dense import DenseDisparity
+    from mca.processing.features import signal_weight
+    from mca.processing.pipeline import _evidence
+
+    shape = (120, 160)
+    noisy = texture(shape, 4) + np.random.default_rng(6).normal(0.0, 0.01, shape + (3,)).astype(np.float32)
+    noisy[:, :60] = 0.4 + np.random.default_rng(7).normal(0.0, 0.01, (shape[0], 60, 3)).astype(np.float32)
+    dense = DenseDisparity(np.zeros(shape, np.float32), np.ones(shape, np.float32), np.zeros(1), (0.0, 0.0))
+    with_noise = cost_input(noisy, True)
+    got = _evidence(with_noise, dense, "signal", 0.1)
+    np.testing.assert_array_equal(got, signal_weight(with_noise.bands, with_noise.noise, 9, 0.1))
+    assert float(np.median(got[:, 10:50])) < 0.3 < 0.9 < float(np.median(got[:, 80:150]))  # flat half: noise alone
+    without = cost_input(noisy, False)
+    np.testing.assert_array_equal(_evidence(without, dense, "signal", 0.1), _evidence(without, dense, "texture", 0.1))
