@@ -4,7 +4,9 @@ The surfaces carry the dense (semi-global) disparity, whose per-pixel precision 
 region (an object of the 2.1D sketch) has thousands of pixels; measured on the raw colour-line cost
 (`processing.cost`) with all of them, its disparity is known to a few hundredths of a pixel. The model is
 shifted by a set of offsets; for every cell (a square of `cell_px`) of every region the cost, weighted by
-texture, is summed at each offset and the parabola through the lowest sum gives that cell's own minimum. The
+texture (times how much of it is signal rather than sensor noise, `features.signal_weight`: a window of noise
+alone has texture too, and no say), is summed at each offset and the parabola through the lowest sum gives that
+cell's own minimum. The
 region's correction is then a robust fit to its cells' minima: one level for a fronto-parallel or curved
 region, a plane for a slanted planar one. Cells, not pixels, vote: a few cells with bad data (a reflection, a
 disocclusion) cannot move the region.
@@ -31,7 +33,7 @@ import numpy as np
 
 from mca.processing.camera import FilterAperture
 from mca.processing.cost import cost_at
-from mca.processing.features import FeatureNoise, texture_energy
+from mca.processing.features import FeatureNoise, signal_weight, texture_energy
 from mca.processing.surfaces import fit_planes, fit_planes_at, interior_weights
 
 
@@ -49,6 +51,9 @@ class RefineParams:
     noise_floor: float = 2e-3
     sampling: str = "bilinear"  # the cost's sampler (`processing.cost`)
     noise_model: bool = True  # the pipeline measures the noise for the cost (`refine_regions(noise=...)`)
+    # a pixel's vote weighs its texture times s / (s + this), s its window's signal-to-noise ratio
+    # (`features.signal_weight`; with the noise); 0: texture alone
+    half_weight_snr: float = 0.1
 
 
 @dataclass
@@ -165,6 +170,8 @@ def refine_regions(
     clear = owner == labels
     feature_planes = [np.moveaxis(bands[b], 0, -1) for b in range(bands.shape[0])]
     texture = texture_energy(feature_planes, params.window_px) * interior_weights(labels, reach)
+    if noise is not None and params.half_weight_snr > 0:  # windows of noise alone do not vote
+        texture *= signal_weight(feature_planes, noise, params.window_px, params.half_weight_snr)
     weights = np.where(clear, texture, 0.0).astype(np.float32)
     cells_x = (w + params.cell_px - 1) // params.cell_px
     cell = (np.arange(h)[:, None] // params.cell_px) * cells_x + np.arange(w)[None, :] // params.cell_px
