@@ -216,12 +216,17 @@ def _band_noise_response(gradient_sigma_px: float, dog_sigmas_px: tuple[float, f
     return gain, rho
 
 
-def texture_energy(bands: list[np.ndarray], window_px: int) -> np.ndarray:
-    """(H, W) float32 root-mean-square feature amplitude in a window: how much structure there is to align."""
+def _window_energy(bands: list[np.ndarray], window_px: int) -> np.ndarray:
+    """(H, W) float32 window mean of the squared feature values, summed over bands and channels."""
     total = np.zeros(bands[0].shape[:2], np.float32)
     for band in bands:
         total += np.sum(band * band, axis=2)
-    mean = cv2.boxFilter(total, cv2.CV_32F, (window_px, window_px), borderType=cv2.BORDER_REFLECT)
+    return cv2.boxFilter(total, cv2.CV_32F, (window_px, window_px), borderType=cv2.BORDER_REFLECT)
+
+
+def texture_energy(bands: list[np.ndarray], window_px: int) -> np.ndarray:
+    """(H, W) float32 root-mean-square feature amplitude in a window: how much structure there is to align."""
+    mean = _window_energy(bands, window_px)
     return np.sqrt(np.maximum(mean / np.float32(3 * len(bands)), 0.0))
 
 
@@ -233,13 +238,9 @@ def signal_weight(bands: list[np.ndarray], noise: FeatureNoise, window_px: int, 
 
     Unlike `texture_energy`, this does not depend on what the rest of the image holds: on a photograph of
     texture-less surfaces most windows hold noise alone, and their colour-alignment cost says nothing."""
-    total = np.zeros(bands[0].shape[:2], np.float32)
-    for band in bands:
-        total += np.sum(band * band, axis=2)
-    size = (window_px, window_px)
-    energy = cv2.boxFilter(total, cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
+    energy = _window_energy(bands, window_px)
     noise_sum = np.asarray(np.sum(noise.variance, axis=0), np.float32) * np.float32(np.sum(noise.band_gain))
-    noise_energy = cv2.boxFilter(noise_sum, cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
+    noise_energy = cv2.boxFilter(noise_sum, cv2.CV_32F, (window_px, window_px), borderType=cv2.BORDER_REFLECT)
     snr = np.maximum(energy / np.maximum(noise_energy, np.float32(1e-30)) - np.float32(1.0), np.float32(0.0))
     return (snr / (snr + np.float32(half_snr))).astype(np.float32)
 
