@@ -33,13 +33,22 @@ running sums over a ring buffer of rows, so one candidate costs one pass over th
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numba as nb
 import numpy as np
 
 from mca.processing.camera import CHANNELS, FilterAperture
-from mca.processing.features import FeatureNoise, feature_bands, feature_noise, log_compress
+from mca.processing.features import (
+    FeatureNoise,
+    feature_bands,
+    feature_noise,
+    log_compress,
+    signal_weight,
+    texture_energy,
+    window_energy,
+)
 
 
 def channel_shifts(aperture: FilterAperture) -> np.ndarray:
@@ -439,6 +448,34 @@ class CostInput:
     bands: list[np.ndarray]  # [(H, W, 3) float32, ...] as `features.feature_bands` makes them
     stacked: np.ndarray  # (B, 3, H, W) float32, `stack_bands(bands)`
     noise: FeatureNoise | None  # `features.feature_noise(planes, bands)`, None when no stage asks for it
+    # what the stages derive from the bands and ask for more than once, made on first use
+    _made: dict[tuple, np.ndarray] = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def window_energy(self, window_px: int) -> np.ndarray:
+        """`features.window_energy` of the bands (shared by every caller: do not write to it)."""
+        return self._once(("energy", window_px), lambda: window_energy(self.bands, window_px))
+
+    def texture_energy(self, window_px: int) -> np.ndarray:
+        """`features.texture_energy` of the bands (shared: do not write to it)."""
+        return self._once(
+            ("texture", window_px), lambda: texture_energy(self.bands, window_px, self.window_energy(window_px))
+        )
+
+    def signal_weight(self, window_px: int, half_snr: float) -> np.ndarray:
+        """`features.signal_weight` of the bands with their noise model (shared: do not write to it). The dense
+        search and the refinement ask for the same window's."""
+        if self.noise is None:
+            raise ValueError("these cost inputs carry no noise model: make them with cost_input(..., noise_model=True)")
+        noise = self.noise
+        return self._once(
+            ("signal", window_px, half_snr),
+            lambda: signal_weight(self.bands, noise, window_px, half_snr, self.window_energy(window_px)),
+        )
+
+    def _once(self, key: tuple, make: Callable[[], np.ndarray]) -> np.ndarray:
+        if key not in self._made:
+            self._made[key] = make()
+        return self._made[key]
 
 
 def cost_input(planes: np.ndarray, noise_model: bool = True) -> CostInput:

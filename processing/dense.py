@@ -28,7 +28,7 @@ import numpy as np
 
 from mca.processing.camera import FilterAperture
 from mca.processing.cost import CostInput, cost_input, cost_volume
-from mca.processing.features import display_gamma, signal_weight
+from mca.processing.features import display_gamma
 from mca.processing.sgm import aggregate
 
 _PATHS = 8  # semi-global aggregation paths: an isolated jump costs about this many P2
@@ -159,7 +159,7 @@ def _cost_hwd(
         inputs = cost_input(planes, params.noise_model)  # once, for every chunk
     weight = np.zeros((0, 0), np.float32)
     if params.half_weight_snr > 0 and inputs.noise is not None:
-        weight = signal_weight(inputs.bands, inputs.noise, params.window_px, params.half_weight_snr)
+        weight = inputs.signal_weight(params.window_px, params.half_weight_snr)
     out = np.empty((h, w, count), np.float32)
     buffer = np.empty((min(_CHUNK, count), h, w), np.float32)
     for first in range(0, count, _CHUNK):

@@ -216,7 +216,7 @@ def _band_noise_response(gradient_sigma_px: float, dog_sigmas_px: tuple[float, f
     return gain, rho
 
 
-def _window_energy(bands: list[np.ndarray], window_px: int) -> np.ndarray:
+def window_energy(bands: list[np.ndarray], window_px: int) -> np.ndarray:
     """(H, W) float32 window mean of the squared feature values, summed over bands and channels."""
     total = np.zeros(bands[0].shape[:2], np.float32)
     for band in bands:
@@ -224,21 +224,27 @@ def _window_energy(bands: list[np.ndarray], window_px: int) -> np.ndarray:
     return cv2.boxFilter(total, cv2.CV_32F, (window_px, window_px), borderType=cv2.BORDER_REFLECT)
 
 
-def texture_energy(bands: list[np.ndarray], window_px: int) -> np.ndarray:
-    """(H, W) float32 root-mean-square feature amplitude in a window: how much structure there is to align."""
-    mean = _window_energy(bands, window_px)
+def texture_energy(bands: list[np.ndarray], window_px: int, energy: np.ndarray | None = None) -> np.ndarray:
+    """(H, W) float32 root-mean-square feature amplitude in a window: how much structure there is to align.
+
+    `energy`: the bands' `window_energy` at `window_px` when the caller has it (`cost.CostInput` keeps it)."""
+    mean = window_energy(bands, window_px) if energy is None else energy
     return np.sqrt(np.maximum(mean / np.float32(3 * len(bands)), 0.0))
 
 
-def signal_weight(bands: list[np.ndarray], noise: FeatureNoise, window_px: int, half_snr: float) -> np.ndarray:
+def signal_weight(
+    bands: list[np.ndarray], noise: FeatureNoise, window_px: int, half_snr: float, energy: np.ndarray | None = None
+) -> np.ndarray:
     """(H, W) float32 in [0, 1): how much of each window's structure is signal rather than sensor noise,
     s / (s + `half_snr`), s = E / N - 1 the window's signal-to-noise ratio: E the feature energy in the window,
     N what `noise` expects of the noise alone there. A window of noise alone (E about N) weighs about 0, one
     whose signal carries `half_snr` times the noise energy 0.5, strong texture about 1.
 
     Unlike `texture_energy`, this does not depend on what the rest of the image holds: on a photograph of
-    texture-less surfaces most windows hold noise alone, and their colour-alignment cost says nothing."""
-    energy = _window_energy(bands, window_px)
+    texture-less surfaces most windows hold noise alone, and their colour-alignment cost says nothing.
+    `energy` as for `texture_energy`."""
+    if energy is None:
+        energy = window_energy(bands, window_px)
     noise_sum = np.asarray(np.sum(noise.variance, axis=0), np.float32) * np.float32(np.sum(noise.band_gain))
     noise_energy = cv2.boxFilter(noise_sum, cv2.CV_32F, (window_px, window_px), borderType=cv2.BORDER_REFLECT)
     snr = np.maximum(energy / np.maximum(noise_energy, np.float32(1e-30)) - np.float32(1.0), np.float32(0.0))

@@ -40,7 +40,7 @@ from mca.processing.cost import CostInput, cost_input
 from mca.processing.dense import DenseDisparity, DenseParams, estimate_dense, quick_disparity
 from mca.processing.depth import depth_map_mm, region_depth
 from mca.processing.disparity import parallel_map, warp_channels
-from mca.processing.features import display_gamma, signal_weight, texture_energy
+from mca.processing.features import display_gamma
 from mca.processing.mpi import all_in_focus, multi_plane_images
 from mca.processing.optics import MCAOptics
 from mca.processing.refine import Refinement, RefineParams, refine_regions
@@ -404,7 +404,13 @@ def _refine_stage(run: _Run) -> None:
         refine = run.params.refine
         noise = run.inputs.noise if refine.noise_model else None
         run.refinement = refine_regions(
-            run.inputs.stacked, run.aperture, run.sketch.labels, run.surface_disparity, refine, noise=noise
+            run.inputs.stacked,
+            run.aperture,
+            run.sketch.labels,
+            run.surface_disparity,
+            refine,
+            noise=noise,
+            inputs=run.inputs,
         )
     run.sketch = _refined_sketch(run.sketch, run.refinement, run.params.sketch.occlusion_margin_px)
     run.recorder.record(
@@ -507,8 +513,8 @@ def _evidence(inputs: CostInput, dense: DenseDisparity, kind: str, half_snr: flo
     if kind == "confidence":
         return dense.confidence
     if kind == "signal" and inputs.noise is not None and half_snr > 0:
-        return signal_weight(inputs.bands, inputs.noise, 9, half_snr)
-    energy = texture_energy(inputs.bands, 9)
+        return inputs.signal_weight(9, half_snr)
+    energy = inputs.texture_energy(9)
     return np.clip(energy / (float(np.median(energy)) + 1e-9), 0.0, 1.0).astype(np.float32)
 
 

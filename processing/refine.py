@@ -32,8 +32,8 @@ import numba as nb
 import numpy as np
 
 from mca.processing.camera import FilterAperture
-from mca.processing.cost import cost_at
-from mca.processing.features import FeatureNoise, signal_weight, texture_energy
+from mca.processing.cost import CostInput, cost_at
+from mca.processing.features import FeatureNoise
 from mca.processing.surfaces import fit_planes, fit_planes_at, interior_weights
 
 
@@ -142,10 +142,13 @@ def refine_regions(
     params: RefineParams = RefineParams(),
     fronto_parallel: set[int] | frozenset[int] = frozenset(),
     noise: FeatureNoise | None = None,
+    inputs: CostInput | None = None,
 ) -> Refinement:
     """Refine the disparity `model` (H, W) region by region (`labels` 1..L) on the feature planes `bands`
     ((B, 3, H, W), `processing.cost.stack_bands`); see the module docstring. Regions in `fronto_parallel` are
-    held to one level; `noise` (`features.feature_noise` of the bands' planes) goes to the cost."""
+    held to one level; `noise` (`features.feature_noise` of the bands' planes) goes to the cost. `inputs`: the
+    `cost.CostInput` whose stack `bands` is, when the caller has it: the texture and signal weights it has
+    made already (the dense search's) are taken from it, not made again."""
     h, w = labels.shape
     count = int(labels.max()) + 1
     lab = labels.ravel()
@@ -168,10 +171,14 @@ def refine_regions(
     reach = params.window_px // 2 + 1
     owner = _owners(labels, np.where(np.isfinite(levels), levels, np.inf), reach)
     clear = owner == labels
-    feature_planes = [np.moveaxis(bands[b], 0, -1) for b in range(bands.shape[0])]
-    texture = texture_energy(feature_planes, params.window_px) * interior_weights(labels, reach)
+    if inputs is None:
+        feature_planes = [np.moveaxis(bands[b], 0, -1) for b in range(bands.shape[0])]
+        inputs = CostInput(feature_planes, bands, noise)
+    elif inputs.stacked is not bands or (noise is not None and noise is not inputs.noise):
+        raise ValueError("refine_regions: `inputs` must be the CostInput whose stack `bands` and noise these are")
+    texture = inputs.texture_energy(params.window_px) * interior_weights(labels, reach)
     if noise is not None and params.half_weight_snr > 0:  # windows of noise alone do not vote
-        texture *= signal_weight(feature_planes, noise, params.window_px, params.half_weight_snr)
+        texture *= inputs.signal_weight(params.window_px, params.half_weight_snr)
     weights = np.where(clear, texture, 0.0).astype(np.float32)
     cells_x = (w + params.cell_px - 1) // params.cell_px
     cell = (np.arange(h)[:, None] // params.cell_px) * cells_x + np.arange(w)[None, :] // params.cell_px

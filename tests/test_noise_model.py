@@ -135,6 +135,33 @@ def test_the_pipeline_with_the_noise_model_keeps_a_noisy_region_where_it_is():
     assert abs(float(np.median(refined.disparity_px)) - 0.25) < 0.06
 
 
+def test_cost_inputs_make_each_weight_once_and_the_refinement_reads_the_same_weights():
+    """The dense search and the refinement ask the capture's `CostInput` for the same signal weight: it is made
+    once, equal to `features.signal_weight` of the bands, and the refinement given the inputs gives what it
+    gives making its weights itself. Inputs of other bands are refused."""
+    from mca.processing.cost import cost_input
+    from mca.processing.features import signal_weight, texture_energy
+
+    noisy = noisy_plane(0.25, 0.06, 4)
+    inputs = cost_input(noisy, True)
+    weight = inputs.signal_weight(9, 0.1)
+    assert inputs.signal_weight(9, 0.1) is weight
+    np.testing.assert_array_equal(weight, signal_weight(inputs.bands, inputs.noise, 9, 0.1))
+    np.testing.assert_array_equal(inputs.texture_energy(9), texture_energy(inputs.bands, 9))
+    assert not np.array_equal(inputs.signal_weight(9, 1.0), weight)
+    labels = np.ones(noisy.shape[:2], np.int32)
+    model = np.zeros(noisy.shape[:2], np.float32)
+    alone = refine_regions(inputs.stacked, APERTURE, labels, model, RefineParams(), {1}, noise=inputs.noise)
+    shared = refine_regions(
+        inputs.stacked, APERTURE, labels, model, RefineParams(), {1}, noise=inputs.noise, inputs=inputs
+    )
+    np.testing.assert_array_equal(alone.disparity_px, shared.disparity_px)
+    with pytest.raises(ValueError, match="CostInput"):
+        refine_regions(inputs.stacked.copy(), APERTURE, labels, model, RefineParams(), {1}, inputs=inputs)
+    with pytest.raises(ValueError, match="noise model"):
+        cost_input(noisy, False).signal_weight(9, 0.1)
+
+
 def test_the_measured_noise_follows_every_object_of_a_rendered_scene():
     """paper-e (a wall filling most of the frame, tomatoes, a carrot, a spatula) rendered twice with the same seed,
     with and without sensor noise: the noise is the difference. Each object's measured variance, channel by
