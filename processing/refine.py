@@ -89,8 +89,8 @@ def _quantile_kernel(labels: np.ndarray, values: np.ndarray, q: float, out: np.n
         if n == 0:
             out[k] = np.inf
         else:
-            group = np.sort(grouped[starts[k] : starts[k + 1]])  # NaN last, as a sort puts it
-            out[k] = group[int(np.floor(q * (n - 1)))]
+            rank = int(np.floor(q * (n - 1)))  # a selection, not a sort: the same element, NaN last as a sort puts it
+            out[k] = np.partition(grouped[starts[k] : starts[k + 1]], rank)[rank]
 
 
 def _quantile_by_label(labels: np.ndarray, values: np.ndarray, count: int, q: float) -> np.ndarray:

@@ -34,6 +34,20 @@ def test_quantile_by_label_is_numpy_lower_quantile(q):
     assert np.array_equal(_median_by_label(labels, values, 6), _quantile_by_label(labels, values, 6, 0.5))
 
 
+@pytest.mark.parametrize("q", [0.0, 0.5, 0.9, 1.0])
+def test_quantile_by_label_counts_nan_as_the_largest_value(q):
+    """A value that is NaN ranks last, as np.sort puts it: below the top rank the quantile is a number."""
+    rng = np.random.default_rng(3)
+    labels = rng.integers(0, 3, 300)
+    values = rng.normal(0, 1, 300)
+    values[rng.choice(300, 20, replace=False)] = np.nan
+    got = _quantile_by_label(labels, values, 3, q)
+    for s in range(3):
+        ranked = np.sort(values[labels == s])
+        expected = ranked[int(np.floor(q * (ranked.size - 1)))]
+        assert got[s] == expected or (np.isnan(got[s]) and np.isnan(expected))
+
+
 def test_owners_are_the_nearest_region_within_reach():
     rng = np.random.default_rng(2)
     labels = np.repeat(np.repeat(rng.integers(0, 4, (6, 7)), 4, axis=0), 4, axis=1)
