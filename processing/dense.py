@@ -42,6 +42,11 @@ class DenseParams:
     step_px: float = 0.5  # spacing of the candidate disparities
     noise_floor: float = 2e-3  # feature amplitude treated as flat
     coarse_weight: float = 1.0  # weight of the half-size cost beside the full-size one (0: none)
+    # an option, off (0: the share above everywhere): the half-size cost's share falls by the full-size window's
+    # `features.signal_weight` with half weight at this signal-to-noise ratio (needs the noise model). Its window
+    # is twice as wide and, beside a thin object or an edge, sees the background too. At 1 it helps the real-content
+    # renders (docs/evaluation.md) but moves the refinement of two paper-c blocks out of the Table 2 targets
+    coarse_half_snr: float = 0.0
     p1: float = 0.2  # SGM penalty of a one-step disparity change (cost units, for 0.5 px steps)
     p2: float = 3.0  # SGM penalty of a larger jump (for 0.5 px steps)
     alpha: float = 0.0  # how much image edges lower P2
@@ -99,17 +104,18 @@ def _volume_dhw(
 def _blend_kernel(
     fine: np.ndarray,
     coarse: np.ndarray,
-    w_fine: float,
-    w_coarse: float,
+    share: float,
+    shares: np.ndarray,
     weight: np.ndarray,
     out: np.ndarray,
     first: int,
 ) -> None:
-    """out[y, x, first + d] = weight[y, x] (w_fine fine[d, y, x] + w_coarse (coarse[d] brought up bilinearly)[y, x]),
-    weight 1 where `weight` is empty."""
+    """out[y, x, first + d] = weight[y, x] ((1 - c) fine[d, y, x] + c (coarse[d] brought up bilinearly)[y, x]),
+    c = shares[y, x] (`share` where `shares` is empty), weight 1 where `weight` is empty."""
     d_count, h, w = fine.shape
     _, ch, cw = coarse.shape
     weighted = weight.shape[0] > 0
+    per_pixel = shares.shape[0] > 0
     sy, sx = ch / h, cw / w
     for y in nb.prange(h):
         fy = max((y + 0.5) * sy - 0.5, 0.0)
@@ -125,9 +131,11 @@ def _blend_kernel(
             c, e = ty * (1.0 - tx), ty * tx
             o = out[y, x]
             k = weight[y, x] if weighted else 1.0
+            w_coarse = k * (shares[y, x] if per_pixel else share)
+            w_fine = k - w_coarse
             for d in range(d_count):
                 up = a * coarse[d, y0, x0] + b * coarse[d, y0, x1] + c * coarse[d, y1, x0] + e * coarse[d, y1, x1]
-                o[first + d] = k * (w_fine * fine[d, y, x] + w_coarse * up)
+                o[first + d] = w_fine * fine[d, y, x] + w_coarse * up
 
 
 _CHUNK = 16  # candidates computed at a time: a (16, H, W) buffer used again, written out 64 bytes per pixel
@@ -149,14 +157,19 @@ def _cost_hwd(
     whole (D, H, W) volume beside the (H, W, D) one would be another quarter of a gigabyte to allocate."""
     h, w = planes.shape[:2]
     count = len(candidates)
-    if params.coarse_weight > 0 and min(h, w) >= 32:
-        coarse = _volume_dhw(cv2.pyrDown(planes), aperture, candidates / 2.0, params)
-        w_fine, w_coarse = 1.0 / (1.0 + params.coarse_weight), params.coarse_weight / (1.0 + params.coarse_weight)
-    else:
-        coarse = np.zeros((count, 1, 1), np.float32)
-        w_fine, w_coarse = 1.0, 0.0
     if inputs is None:
         inputs = cost_input(planes, params.noise_model)  # once, for every chunk
+    shares = np.zeros((0, 0), np.float32)
+    if params.coarse_weight > 0 and min(h, w) >= 32:
+        coarse = _volume_dhw(cv2.pyrDown(planes), aperture, candidates / 2.0, params)
+        share = params.coarse_weight / (1.0 + params.coarse_weight)
+        if params.coarse_half_snr > 0 and inputs.noise is not None:
+            shares = np.float32(share) * (
+                np.float32(1.0) - inputs.signal_weight(params.window_px, params.coarse_half_snr)
+            )
+    else:
+        coarse = np.zeros((count, 1, 1), np.float32)
+        share = 0.0
     weight = np.zeros((0, 0), np.float32)
     if params.half_weight_snr > 0 and inputs.noise is not None:
         weight = inputs.signal_weight(params.window_px, params.half_weight_snr)
@@ -165,7 +178,7 @@ def _cost_hwd(
     for first in range(0, count, _CHUNK):
         last = min(first + _CHUNK, count)
         fine = _volume_dhw(planes, aperture, candidates[first:last], params, inputs, buffer[: last - first])
-        _blend_kernel(fine, coarse[first:last], w_fine, w_coarse, weight, out, first)
+        _blend_kernel(fine, coarse[first:last], share, shares, weight, out, first)
     return out
 
 

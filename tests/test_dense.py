@@ -75,8 +75,9 @@ def test_the_b_spline_sampler_removes_the_noise_bias_of_full_colour_input():
 @pytest.mark.parametrize("shape", [(40, 64), (37, 51)])
 def test_the_coarse_cost_comes_back_up_as_opencv_resizes_it(shape):
     """The fused blend (fine volume averaged with the half-size one brought up, transposed to (H, W, D) in one
-    pass, one chunk of candidates at a time, each pixel scaled by its weight when weights are given) against
-    OpenCV's bilinear resize of each slice, on odd and even sizes."""
+    pass, one chunk of candidates at a time, with one share of the half-size cost or a share per pixel, each
+    pixel scaled by its weight when weights are given) against OpenCV's bilinear resize of each slice, on odd
+    and even sizes."""
     from mca.processing.dense import _blend_kernel
 
     rng = np.random.default_rng(5)
@@ -84,13 +85,16 @@ def test_the_coarse_cost_comes_back_up_as_opencv_resizes_it(shape):
     fine = rng.random((7, h, w), dtype=np.float32)
     coarse = rng.random((7, (h + 1) // 2, (w + 1) // 2), dtype=np.float32)
     up = np.stack([cv2.resize(s, (w, h), interpolation=cv2.INTER_LINEAR) for s in coarse])
-    expected = ((fine + 0.5 * up) / 1.5).transpose(1, 2, 0)
     weight = rng.random((h, w), dtype=np.float32)
-    for given, scale in ((np.zeros((0, 0), np.float32), 1.0), (weight, weight[..., None])):
-        blended = np.full((h, w, 7), np.nan, np.float32)
-        for first, last in ((0, 4), (4, 7)):
-            _blend_kernel(fine[first:last], coarse[first:last], 1 / 1.5, 0.5 / 1.5, given, blended, first)
-        assert np.abs(blended - expected * scale).max() < 1e-5
+    shares = rng.random((h, w), dtype=np.float32) * 0.5
+    none = np.zeros((0, 0), np.float32)
+    for share_map, share in ((none, 0.5 / 1.5), (shares, shares[None])):
+        expected = ((1.0 - share) * fine + share * up).transpose(1, 2, 0)
+        for given, scale in ((none, 1.0), (weight, weight[..., None])):
+            blended = np.full((h, w, 7), np.nan, np.float32)
+            for first, last in ((0, 4), (4, 7)):
+                _blend_kernel(fine[first:last], coarse[first:last], 0.5 / 1.5, share_map, given, blended, first)
+            assert np.abs(blended - expected * scale).max() < 1e-5
 
 
 def test_the_chunked_volume_is_the_whole_volume_blended():
@@ -101,7 +105,7 @@ def test_the_chunked_volume_is_the_whole_volume_blended():
 
     shape = (64, 80)
     planes = render_layers([(texture(shape, 2), np.ones(shape, np.float32), 1.5)], shape, APERTURE)
-    params = DenseParams(coarse_weight=0.5)
+    params = DenseParams(coarse_weight=0.5, coarse_half_snr=0.0)
     candidates = np.arange(-(_CHUNK + 3), _CHUNK + 4) * 0.5
     assert len(candidates) > 2 * _CHUNK
     inputs = cost_input(planes)
@@ -141,3 +145,25 @@ def test_a_one_colour_wall_framed_by_texture_takes_the_frames_disparity_despite_
         wrong[half] = float(np.mean(np.abs(result.disparity_px[30:-30, 30:-30] - 3.0) > 1.0))
     assert wrong[0.0] > 0.05, wrong
     assert wrong[DenseParams().half_weight_snr] < 0.01, wrong
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_thin_near_bar_keeps_its_disparity_where_its_own_windows_have_signal(seed):
+    """An 8-px textured bar at -2 px before a textured wall at +4 px, with sensor noise. The half-size cost's
+    window is twice as wide and sees the wall beside the bar: at a fixed share it takes 16-47 % of the bar's
+    middle to the wall or between; with its share lowered where the full-size window has signal
+    (`DenseParams.coarse_half_snr`), the bar keeps its disparity."""
+    shape = (160, 240)
+    wall = (texture(shape, seed, (0.45, 0.43, 0.40), blur_px=1.5, contrast=0.3), np.ones(shape, np.float32), 4.0)
+    alpha = np.zeros(shape, np.float32)
+    alpha[:, 100:108] = 1
+    bar = (texture(shape, seed + 10, (0.7, 0.3, 0.2), blur_px=1.0, contrast=0.4), alpha, -2.0)
+    image = render_layers([wall, bar], shape, APERTURE)
+    rng = np.random.default_rng(seed)
+    noisy = np.clip(image + rng.normal(0.0, 0.01, image.shape).astype(np.float32), 1e-3, None)
+    found = {}
+    for half_snr in (0.0, 1.0):
+        disparity = estimate_dense(noisy, APERTURE, (-8.0, 8.0), DenseParams(coarse_half_snr=half_snr)).disparity_px
+        found[half_snr] = float(np.mean(np.abs(disparity[20:-20, 101:107] + 2.0) < 0.5))
+    assert found[1.0] >= 0.95, found
+    assert found[0.0] <= 0.9, found  # the fixed share, which the test would not tell apart otherwise
