@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 
 from mca.processing.camera import CHANNELS, FilterAperture
+from mca.processing.sampling import remap_linear
 
 
 def channel_shifts(aperture: FilterAperture) -> np.ndarray:
@@ -104,11 +105,19 @@ def warp_channels(
         for c in range(3):
             map_x = _shifted_map(xs, ds, shifts[c, 0], (y1 - y0, width))
             map_y = _shifted_map(ys[y0:y1], ds, shifts[c, 1], (y1 - y0, width))
-            moved.append(cv2.remap(split[c], map_x, map_y, interpolation, borderMode=cv2.BORDER_REPLICATE))
+            moved.append(_remap(split[c], map_x, map_y, interpolation))
         out[y0:y1] = cv2.merge(moved)
 
     parallel_map(strip, range(0, height, rows))
     return out
+
+
+def _remap(src: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, interpolation: int) -> np.ndarray:
+    """`cv2.remap` with replicated borders; bilinear sampling by our own exact kernel (`processing.sampling`: OpenCV
+    before 5 rounds the coordinates to 1/32 px), any other interpolation by OpenCV."""
+    if interpolation == cv2.INTER_LINEAR:
+        return remap_linear(src, map_x, map_y)
+    return cv2.remap(src, map_x, map_y, interpolation, borderMode=cv2.BORDER_REPLICATE)
 
 
 def _shifted_map(base: np.ndarray, d: np.ndarray, shift: float, shape: tuple[int, int]) -> np.ndarray:
@@ -238,7 +247,7 @@ class AlignmentCost:
         for c in range(3):
             map_x = _shifted_map(xs, disparity_px, self.shifts[c, 0], (height, width))
             map_y = _shifted_map(ys, disparity_px, self.shifts[c, 1], (height, width))
-            channels.append(cv2.remap(self.band[c], map_x, map_y, self.interpolation, borderMode=cv2.BORDER_REPLICATE))
+            channels.append(_remap(self.band[c], map_x, map_y, self.interpolation))
         return self._measure(channels)
 
     def offsets(self, disparity_px: np.ndarray, deltas: np.ndarray, reduce=None) -> list:
@@ -267,12 +276,11 @@ class AlignmentCost:
                     map_x, map_y = base[c][0][a0:a1], base[c][1][a0:a1]
                     sx, sy = moves[c]
                     channels.append(
-                        cv2.remap(
+                        _remap(
                             self.band[c],
                             map_x + sx if sx != 0 else map_x,
                             map_y + sy if sy != 0 else map_y,
                             self.interpolation,
-                            borderMode=cv2.BORDER_REPLICATE,
                         )
                     )
                 return channels
