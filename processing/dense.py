@@ -45,7 +45,8 @@ class DenseParams:
     # an option, off (0: the share above everywhere): the half-size cost's share falls by the full-size window's
     # `features.signal_weight` with half weight at this signal-to-noise ratio (needs the noise model). Its window
     # is twice as wide and, beside a thin object or an edge, sees the background too. At 1 it helps the real-content
-    # renders (docs/evaluation.md) but moves the refinement of two paper-c blocks out of the Table 2 targets
+    # renders (docs/evaluation.md, tenth stop) but splits dog.png's books and joins bonsai.png's crown to the
+    # background, and makes the card of tests/test_sketch.py's slanted floor slanted
     coarse_half_snr: float = 0.0
     p1: float = 0.2  # SGM penalty of a one-step disparity change (cost units, for 0.5 px steps)
     p2: float = 3.0  # SGM penalty of a larger jump (for 0.5 px steps)

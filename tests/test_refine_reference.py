@@ -15,6 +15,7 @@ from mca.processing.refine import (
     _parabola_minima,
     _quantile_by_label,
     _robust_level,
+    _robust_plane,
 )
 
 
@@ -155,3 +156,33 @@ def test_a_curved_region_gets_a_slope_only_from_six_cells(rows):
         assert result.corrections[1][:2] == (0.0, 0.0)
     else:
         assert 0.002 < slope < 0.01
+
+
+@pytest.mark.parametrize("offset_px", [0.0, 37.5])
+def test_the_correction_plane_ignores_a_heavy_outlier_cell(offset_px):
+    """Cell minima on a known plane (0.001 x - 0.0005 y + 0.2) with 0.01 px noise, 80 cells of weights 0.1-1, and
+    one cell at the region's edge 0.7 px off holding a third of the weight (an edge whose windows see two
+    depths). The weighted least-squares plane tilts toward the outlier; the robust plane keeps the truth to
+    a few ten-thousandths of a px per px, whatever the coordinates' origin."""
+    rng = np.random.default_rng(3)
+    xs = rng.uniform(0, 300, 80) + offset_px
+    ys = rng.uniform(0, 260, 80) + offset_px
+    truth = np.array([0.001, -0.0005, 0.2])
+    minima = truth[0] * xs + truth[1] * ys + truth[2] + rng.normal(0, 0.01, 80)
+    weights = rng.uniform(0.1, 1.0, 80)
+    edge = int(np.argmax(xs))
+    minima[edge] += 0.7
+    weights[edge] = 0.5 * (weights.sum() - weights[edge])
+    design = np.stack([xs, ys, np.ones_like(xs)], axis=1)
+    sw = np.sqrt(weights)
+    least_squares = np.linalg.lstsq(design * sw[:, None], minima * sw, rcond=None)[0]
+    assert abs(least_squares[0] - truth[0]) > 1e-3  # the reference really is pulled off
+    plane = _robust_plane(xs, ys, minima, weights)
+    np.testing.assert_allclose(plane[:2], truth[:2], atol=3e-4)
+    centre = (xs.mean(), ys.mean())
+    level = plane[0] * centre[0] + plane[1] * centre[1] + plane[2]
+    assert abs(level - (truth[0] * centre[0] + truth[1] * centre[1] + truth[2])) < 0.02
+    # without outliers it is the weighted least-squares plane
+    clean = truth[0] * xs + truth[1] * ys + truth[2] + rng.normal(0, 0.01, 80)
+    reference = np.linalg.lstsq(design * sw[:, None], clean * sw, rcond=None)[0]
+    np.testing.assert_allclose(_robust_plane(xs, ys, clean, weights), reference, atol=2e-6)
