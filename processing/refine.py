@@ -152,28 +152,38 @@ def _robust_plane(
     box 0.0028 px per px). Here the fit starts from the weighted median level, flat, and the spread is the
     weighted median absolute residual (times 1.4826, a standard deviation for Gaussian residuals), which such
     cells do not move: residuals beyond 1.5 of it are down-weighted (Huber), beyond 2 of it + 0.05 px dropped."""
-    x = xs - np.average(xs, weights=weights)  # about the centroid: a well-conditioned system
-    y = ys - np.average(ys, weights=weights)
-    level = _robust_level(values, weights)
-    coef = np.array([0.0, 0.0, level])
-    design = np.stack([x, y, np.ones_like(x)], axis=1)
+    # plain sums, no BLAS: a threaded matrix product rounds differently with the number of threads, and the
+    # answer must not depend on how many workers share the machine (tests/test_batch.py)
+    total = float(np.sum(weights))
+    cx = float(np.sum(weights * xs)) / total
+    cy = float(np.sum(weights * ys)) / total
+    x = xs - cx  # about the centroid: a well-conditioned system
+    y = ys - cy
+    a, b, c = 0.0, 0.0, _robust_level(values, weights)
     for _ in range(iterations):
-        residual = np.abs(values - design @ coef)
+        residual = np.abs(values - (a * x + b * y + c))
         sigma = max(1.4826 * _robust_level(residual, weights), 0.02)
         robust = np.where(residual <= 1.5 * sigma, 1.0, 1.5 * sigma / np.maximum(residual, 1e-12))
         robust[residual > 2.0 * sigma + 0.05] = 0.0
         w = weights * robust
-        if w.sum() <= 0:
+        sw = float(np.sum(w))
+        if sw <= 0:
             break
-        normal = design.T @ (design * w[:, None])
-        normal[0, 0] += 1e-6 * w.sum()  # a negligible ridge on the slopes, as before
-        normal[1, 1] += 1e-6 * w.sum()
+        wx, wy = w * x, w * y
+        ridge = 1e-6 * sw  # a negligible ridge on the slopes, as before
+        normal = np.array(
+            [
+                [float(np.sum(wx * x)) + ridge, float(np.sum(wx * y)), float(np.sum(wx))],
+                [float(np.sum(wx * y)), float(np.sum(wy * y)) + ridge, float(np.sum(wy))],
+                [float(np.sum(wx)), float(np.sum(wy)), sw],
+            ]
+        )
+        rhs = np.array([float(np.sum(wx * values)), float(np.sum(wy * values)), float(np.sum(w * values))])
         try:
-            coef = np.linalg.solve(normal, design.T @ (w * values))
+            a, b, c = (float(v) for v in np.linalg.solve(normal, rhs))
         except np.linalg.LinAlgError:
             break
-    a, b, c = coef
-    return np.array([a, b, c - a * np.average(xs, weights=weights) - b * np.average(ys, weights=weights)])
+    return np.array([a, b, c - a * cx - b * cy])
 
 
 def refine_regions(
