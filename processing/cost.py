@@ -49,6 +49,7 @@ from mca.processing.features import (
     texture_energy,
     window_energy,
 )
+from mca.processing.jit import FASTMATH
 
 
 def channel_shifts(aperture: FilterAperture) -> np.ndarray:
@@ -56,7 +57,7 @@ def channel_shifts(aperture: FilterAperture) -> np.ndarray:
     return np.array([aperture.shift_per_disparity(c) for c in CHANNELS], dtype=np.float64)
 
 
-@nb.njit(cache=True, fastmath=True, inline="always")
+@nb.njit(cache=True, fastmath=FASTMATH, inline="always")
 def _bspline_weights(t: float) -> tuple[float, float, float, float]:
     """Cubic B-spline weights of the taps at floor - 1 .. floor + 2 for a sample at fraction t in [0, 1)."""
     s = 1.0 - t
@@ -65,7 +66,7 @@ def _bspline_weights(t: float) -> tuple[float, float, float, float]:
     return s * s * s / 6.0, (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0, (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0, t3 / 6.0
 
 
-@nb.njit(cache=True, fastmath=True, inline="always")
+@nb.njit(cache=True, fastmath=FASTMATH, inline="always")
 def _bspline(img: np.ndarray, y: float, x: float) -> float:
     """img sampled at (y, x) through the cubic B-spline (4 x 4 taps, indices clamped to the image)."""
     h, w = img.shape
@@ -85,7 +86,7 @@ def _bspline(img: np.ndarray, y: float, x: float) -> float:
     return total
 
 
-@nb.njit(cache=True, fastmath=True, inline="always")
+@nb.njit(cache=True, fastmath=FASTMATH, inline="always")
 def _sample_row(src: np.ndarray, y: int, sx: float, sy: float, out: np.ndarray, tmp: np.ndarray) -> None:
     """out[x] = src sampled through the cubic B-spline at (x + sx, y + sy), tap indices clamped to the image;
     separable: the four rows are combined into `tmp` first."""
@@ -115,7 +116,7 @@ def _sample_row(src: np.ndarray, y: int, sx: float, sy: float, out: np.ndarray, 
         out[x] = wx0 * tmp[x + ix - 1] + wx1 * tmp[x + ix] + wx2 * tmp[x + ix + 1] + wx3 * tmp[x + ix + 2]
 
 
-@nb.njit(cache=True, fastmath=True, inline="always")
+@nb.njit(cache=True, fastmath=FASTMATH, inline="always")
 def _sample_row_bilinear(src: np.ndarray, y: int, sx: float, sy: float, out: np.ndarray) -> None:
     """out[x] = src bilinearly sampled at (x + sx, y + sy), coordinates clamped to the image."""
     h, w = src.shape
@@ -151,7 +152,7 @@ def _sample_row_bilinear(src: np.ndarray, y: int, sx: float, sy: float, out: np.
             inside[i] = a * top[i] + b * top[i + 1] + c * bottom[i] + d * bottom[i + 1]
 
 
-@nb.njit(cache=True, fastmath=True, inline="always")
+@nb.njit(cache=True, fastmath=FASTMATH, inline="always")
 def _sample_row_shifted(
     src: np.ndarray, y: int, sx: float, sy: float, out: np.ndarray, tmp: np.ndarray, bspline: bool
 ) -> None:
@@ -163,7 +164,7 @@ def _sample_row_shifted(
         _sample_row_bilinear(src, y, sx, sy, out)
 
 
-@nb.njit(cache=True, fastmath=True, inline="always")
+@nb.njit(cache=True, fastmath=FASTMATH, inline="always")
 def _row_taps(
     h: int, w: int, y: int, disparity_row: np.ndarray, sx: float, sy: float, at: np.ndarray, frac: np.ndarray
 ):
@@ -183,7 +184,7 @@ def _row_taps(
         frac[1, x] = py - y0
 
 
-@nb.njit(cache=True, fastmath=True, inline="always")
+@nb.njit(cache=True, fastmath=FASTMATH, inline="always")
 def _gather_row(src: np.ndarray, at: np.ndarray, frac: np.ndarray, out: np.ndarray) -> None:
     """out[x] = src sampled bilinearly at the taps of `_row_taps`."""
     for x in range(out.shape[0]):
@@ -194,7 +195,7 @@ def _gather_row(src: np.ndarray, at: np.ndarray, frac: np.ndarray, out: np.ndarr
         out[x] = top * (1.0 - fy) + bottom * fy
 
 
-@nb.njit(cache=True, fastmath=True, inline="always")
+@nb.njit(cache=True, fastmath=FASTMATH, inline="always")
 def _sample_row_map_bspline(src: np.ndarray, y: int, disparity_row: np.ndarray, sx: float, sy: float, out: np.ndarray):
     """out[x] = src sampled at (x + d(x) sx, y + d(x) sy) through the cubic B-spline, clamped (bilinear
     per-pixel sampling goes through `_row_taps` and `_gather_row`)."""
@@ -204,7 +205,7 @@ def _sample_row_map_bspline(src: np.ndarray, y: int, disparity_row: np.ndarray, 
         out[x] = _bspline(src, y + dd * sy, x + dd * sx)
 
 
-@nb.njit(cache=True, fastmath=True, inline="always")
+@nb.njit(cache=True, fastmath=FASTMATH, inline="always")
 def _axis_gain(t: float, rho: np.ndarray, bspline: bool) -> float:
     """Noise variance gain of sampling at fraction t along one axis, for noise correlating rho[lag - 1] at lags
     1..3: the sum over tap pairs of w_i w_j rho(|i - j|)."""
@@ -222,7 +223,7 @@ def _axis_gain(t: float, rho: np.ndarray, bspline: bool) -> float:
     return (1.0 - t) * (1.0 - t) + t * t + 2.0 * rho[0] * t * (1.0 - t)
 
 
-@nb.njit(cache=True, fastmath=True, inline="always")
+@nb.njit(cache=True, fastmath=FASTMATH, inline="always")
 def _noise_deficit(sx, sy, gain, rho, signal_rho, bspline):
     """How much noise variance (per unit of pixel noise variance, summed over the bands) a sample at offset
     (sx, sy) lacks for its noise to keep the ratio to its signal it had before sampling: interpolation averages
@@ -239,7 +240,7 @@ def _noise_deficit(sx, sy, gain, rho, signal_rho, bspline):
 _DEFICIT_STEPS = 64  # per-pixel shifts: the deficit is looked up at 1/64 px of fractional offset
 
 
-@nb.njit(cache=True, fastmath=True)
+@nb.njit(cache=True, fastmath=FASTMATH)
 def _deficit_table(gain, rho, signal_rho, bspline):
     """(3, S + 1, S + 1): `_noise_deficit` of each channel at fractional offsets (i / S, j / S)."""
     steps = _DEFICIT_STEPS
@@ -251,7 +252,7 @@ def _deficit_table(gain, rho, signal_rho, bspline):
     return table
 
 
-@nb.njit(cache=True, fastmath=True, inline="always")
+@nb.njit(cache=True, fastmath=FASTMATH, inline="always")
 def _add_noise_deficit(ring_row, variance, y, sx, sy, d_row, per_pixel, deficit, table):
     """ring_row[x] += the noise variance that channel `variance` (H, W) lacks in its sample for pixel (x, y),
     shifted by (sx, sy) (times d_row[x] when per_pixel): the sampled pixel's variance times its deficit,
@@ -274,7 +275,7 @@ def _add_noise_deficit(ring_row, variance, y, sx, sy, d_row, per_pixel, deficit,
             ring_row[x] += table[int((dx - fx) * steps + 0.5), int((dy - fy) * steps + 0.5)] * variance[yi, xi]
 
 
-@nb.njit(cache=True, fastmath=True, error_model="numpy")  # numpy's: no zero-division check stops vectorising
+@nb.njit(cache=True, fastmath=FASTMATH, error_model="numpy")  # numpy's: no zero-division check stops vectorising
 def _cost_map(bands, shifts, d, disparity, radius, eps, out, bspline, variance, gain, rho, signal_rho):
     """Colour-line cost of every pixel (window (2 radius + 1)^2, clamped at the borders) with the channels
     sampled at x + d s_c, d the scalar `d` or, when `disparity` has rows, the per-pixel map; into `out` (h, w).

@@ -29,6 +29,7 @@ import numpy as np
 from mca.processing.camera import FilterAperture
 from mca.processing.cost import CostInput, cost_input, cost_volume
 from mca.processing.features import display_gamma
+from mca.processing.jit import FASTMATH
 from mca.processing.sgm import aggregate
 
 _PATHS = 8  # semi-global aggregation paths: an isolated jump costs about this many P2
@@ -101,7 +102,7 @@ def _volume_dhw(
     )
 
 
-@nb.njit(cache=True, parallel=True, fastmath=True)
+@nb.njit(cache=True, parallel=True, fastmath=FASTMATH)
 def _blend_kernel(
     fine: np.ndarray,
     coarse: np.ndarray,
@@ -183,7 +184,7 @@ def _cost_hwd(
     return out
 
 
-@nb.njit(cache=True, parallel=True, fastmath=True)
+@nb.njit(cache=True, parallel=True, fastmath=FASTMATH)
 def _winner_kernel(
     aggregated: np.ndarray, candidates: np.ndarray, scale: float, disparity: np.ndarray, confidence: np.ndarray
 ) -> None:

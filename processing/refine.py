@@ -152,8 +152,8 @@ def _robust_plane(
     box 0.0028 px per px). Here the fit starts from the weighted median level, flat, and the spread is the
     weighted median absolute residual (times 1.4826, a standard deviation for Gaussian residuals), which such
     cells do not move: residuals beyond 1.5 of it are down-weighted (Huber), beyond 2 of it + 0.05 px dropped."""
-    # plain sums, no BLAS: a threaded matrix product rounds differently with the number of threads, and the
-    # answer must not depend on how many workers share the machine (tests/test_batch.py)
+    # plain numpy sums, no BLAS products: a threaded BLAS may split a product by its thread count, which a batch
+    # worker has fewer of than a lone process, and the answer must not depend on it (tests/test_batch.py)
     total = float(np.sum(weights))
     cx = float(np.sum(weights * xs)) / total
     cy = float(np.sum(weights * ys)) / total

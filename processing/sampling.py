@@ -15,10 +15,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-_FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}  # fastmath without nnan / ninf: the kernel checks for NaN
 
-
-@nb.njit(cache=True, nogil=True, fastmath=_FAST)
+@nb.njit(cache=True, nogil=True)  # no fastmath: the kernel tests for NaN, and each tap is rounded as written
 def _remap_linear(src: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, out: np.ndarray) -> None:
     h, w = src.shape
     rows, cols = out.shape

@@ -17,8 +17,10 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from mca.processing.jit import FASTMATH
 
-@nb.njit(cache=True, fastmath=True, inline="always")
+
+@nb.njit(cache=True, fastmath=FASTMATH, inline="always")
 def _step(c: np.ndarray, prev: np.ndarray, prev_min: float, p1: float, p2: float, out: np.ndarray) -> float:
     count = c.shape[0]
     base = prev_min + p2
@@ -35,7 +37,7 @@ def _step(c: np.ndarray, prev: np.ndarray, prev_min: float, p1: float, p2: float
     return smallest
 
 
-@nb.njit(cache=True, fastmath=True, inline="always")
+@nb.njit(cache=True, fastmath=FASTMATH, inline="always")
 def _penalty(p1: float, p2: float, alpha: float, floor: float, g0: np.ndarray, g1: np.ndarray) -> float:
     """P2 at a step from guide pixel g1 to g0 (each a vector of channels): the largest channel's step counts,
     less `floor` (the steps noise makes)."""
@@ -45,7 +47,7 @@ def _penalty(p1: float, p2: float, alpha: float, floor: float, g0: np.ndarray, g
     return max(p2 / (1.0 + alpha * max(step - floor, 0.0)), 1.5 * p1)
 
 
-@nb.njit(cache=True, fastmath=True, inline="always")
+@nb.njit(cache=True, fastmath=FASTMATH, inline="always")
 def _vertical_row(cost, guide, p1, p2, alpha, floor, out, y, yp, x0, x1, prev, prev_min, cur, cur_min):
     """Row y of the three paths with predecessors in row yp (path k: (yp, x - dx_k), dx = 0, +1, -1) for the
     columns x0..x1 - 1; their sum is added into `out`."""
@@ -71,7 +73,7 @@ def _vertical_row(cost, guide, p1, p2, alpha, floor, out, y, yp, x0, x1, prev, p
             o[d] += cur[0, x, d] + cur[1, x, d] + cur[2, x, d]
 
 
-@nb.njit(cache=True, parallel=True, fastmath=True)
+@nb.njit(cache=True, parallel=True, fastmath=FASTMATH)
 def _vertical_sweep(cost, guide, p1, p2, alpha, floor, out, dy, chunks):
     """The three paths with a vertical component dy (+1: top to bottom) in one sweep over the rows, their sum
     added into `out`. Each row is shared out among the threads in `chunks` column blocks; a row starts when
@@ -113,7 +115,7 @@ def _vertical_sweep(cost, guide, p1, p2, alpha, floor, out, dy, chunks):
             )
 
 
-@nb.njit(cache=True, parallel=True, fastmath=True)
+@nb.njit(cache=True, parallel=True, fastmath=FASTMATH)
 def _columns_pass(cost, guide, p1, p2, alpha, floor, out, dx, assign):
     """Horizontal paths: every row on its own, x in order (dx = +1: left to right); `assign`: the path's values
     replace those in `out`, else they are added."""

@@ -23,6 +23,7 @@ import cv2
 import numba as nb
 import numpy as np
 
+from mca.processing.jit import FASTMATH
 from mca.processing.slic import slic_labels
 
 
@@ -298,7 +299,7 @@ def _graph(labels: np.ndarray, count: int, rings: int, samples: int) -> _Graph:
     )
 
 
-@nb.njit(cache=True, parallel=True, fastmath=True)
+@nb.njit(cache=True, parallel=True, fastmath=FASTMATH)
 def _data_terms(disparity, evidence, width, planes, pix_ptr, pix_index, cand_ptr, cand_list, clip):
     n = pix_ptr.shape[0] - 1
     out = np.zeros(cand_list.shape[0], np.float64)
