@@ -36,7 +36,7 @@ from mca.capture.pipeline_app import (
     output_dir_for,
     process_file,
 )
-from mca.capture.threads import limit_threads, threads_per_worker
+from mca.capture.threads import init_pool_worker, stage_queue, threads_per_worker
 from mca.processing.camera import CameraProfile
 
 
@@ -227,16 +227,6 @@ def _key(task: Task) -> str:
     return f"{task.shot_index}-{task.out_name}"
 
 
-_worker_stage_queue: Any = None  # in a pool worker: where stage announcements go (set by the initializer)
-
-
-def _init_pool_worker(queue: Any, threads: int | None = None) -> None:
-    global _worker_stage_queue
-    _worker_stage_queue = queue
-    if threads:  # this worker's share of the cores (capture/threads.py), set before the pipeline loads
-        limit_threads(threads)
-
-
 def worker_threads(workers: int) -> int | None:
     """Compute threads for each of `workers` pool processes: the cores shared out (`threads_per_worker`), or
     $MCA_WORKER_THREADS when set (0: no limit, every library sizes itself to the whole machine)."""
@@ -253,7 +243,7 @@ def _pool_process_file(
     input_path: Path, out_root: Path, profile: CameraProfile, key: str, **kwargs: Any
 ) -> FileOutcome:
     """`process_file` in a pool worker, announcing its stages as (key, stage) on the pool's queue."""
-    queue = _worker_stage_queue
+    queue = stage_queue()
     on_stage = None if queue is None else (lambda stage: queue.put((key, stage)))
     return process_file(input_path, out_root, profile, on_stage=on_stage, **kwargs)
 
@@ -270,7 +260,7 @@ class PoolRunner:
         self.executor = concurrent.futures.ProcessPoolExecutor(
             max_workers=workers,
             mp_context=context,
-            initializer=_init_pool_worker,
+            initializer=init_pool_worker,  # its share of the cores, set before the pipeline loads
             initargs=(self.stages, self.threads),
         )
         self.futures: dict[concurrent.futures.Future, Task] = {}

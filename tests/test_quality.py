@@ -172,25 +172,32 @@ limit_threads(1)
 import cv2
 calls = []
 disparity.parallel_map(lambda i: calls.append(i), range(4))
+# numba re-reads NUMBA_NUM_THREADS before every compile and refuses a new value once its pool runs
+compiled = numba.njit(lambda x: x + 1)(1)
 print(json.dumps({"numba": numba.get_num_threads(), "opencv": cv2.getNumThreads(), "helpers": disparity._WORKERS,
-                  "calls": sorted(calls)}))
+                  "calls": sorted(calls), "compiled": compiled}))
 """
 
 
 def test_limit_threads_limits_numba_opencv_and_the_helper_threads():
-    done = subprocess.run([sys.executable, "-c", LIMIT_SCRIPT], capture_output=True, text=True, check=True)
+    done = subprocess.run([sys.executable, "-c", LIMIT_SCRIPT], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
     seen = json.loads(done.stdout)
-    assert seen == {"numba": 1, "opencv": 1, "helpers": 1, "calls": [0, 1, 2, 3]}
+    assert seen == {"numba": 1, "opencv": 1, "helpers": 1, "calls": [0, 1, 2, 3], "compiled": 2}
 
 
 def thread_reporting_pipeline(planes, aperture, optics, **options):
     """A pool worker's view of its thread limits, written beside the outputs (MCA_TEST_THREADS_DIR)."""
     import cv2
+    import numba
 
     folder = Path(os.environ["MCA_TEST_THREADS_DIR"])
-    (folder / f"{os.getpid()}.json").write_text(
-        json.dumps({"opencv": cv2.getNumThreads(), "numba_env": os.environ.get("NUMBA_NUM_THREADS")})
-    )
+    seen = {
+        "opencv": cv2.getNumThreads(),
+        "numba_env": os.environ.get("NUMBA_NUM_THREADS"),
+        "numba_pool": numba.config.NUMBA_NUM_THREADS,  # sized when numba loaded: after the limit, not before
+    }
+    (folder / f"{os.getpid()}.json").write_text(json.dumps(seen))
     return fake_pipeline(planes, aperture, optics, **options)
 
 
@@ -206,7 +213,7 @@ def test_pool_workers_run_with_their_share_of_threads(tmp_path, profile, monkeyp
     report = run_batch([inputs], tmp_path / "out", profile, workers=2, pipeline=thread_reporting_pipeline)
     assert [o.status for o in report.outcomes] == ["done"] * 3, [o.reason for o in report.outcomes]
     seen = [json.loads(p.read_text()) for p in report_dir.iterdir()]
-    assert seen and all(s == {"opencv": 1, "numba_env": "1"} for s in seen)
+    assert seen and all(s == {"opencv": 1, "numba_env": "1", "numba_pool": 1} for s in seen), seen
 
 
 def test_files_processed_in_this_process_keep_every_thread(tmp_path, profile, monkeypatch):
