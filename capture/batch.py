@@ -36,7 +36,8 @@ from mca.capture.pipeline_app import (
     output_dir_for,
     process_file,
 )
-from mca.capture.threads import init_pool_worker, stage_queue, threads_per_worker
+from mca.capture.pool_worker import init_pool_worker, stage_queue
+from mca.capture.threads import threads_per_worker
 from mca.processing.camera import CameraProfile
 
 

@@ -6,14 +6,13 @@ kernels (`NUMBA_NUM_THREADS`), OpenCV's `parallel_for_` (`cv2.setNumThreads`), O
 `MCA_THREADS`). With `--workers 2` on 2 cores each worker would run 2 threads of each: 4+ runnable
 threads on 2 cores, time lost to switching and to threads waiting for each other at the end of
 every parallel loop. `limit_threads` runs in each pool worker before the pipeline is imported
-(`init_pool_worker`, the initializer of `capture.batch`'s pool); benchmarks/bench_process.py measures the effect.
+(`capture.pool_worker`, the initializer of `capture.batch`'s pool); benchmarks/bench_process.py measures the effect.
 """
 
 from __future__ import annotations
 
 import os
 import sys
-from typing import Any
 
 # Read by the libraries when they load (numba, OpenBLAS, OpenMP, MKL) and by `processing.disparity` (MCA_THREADS).
 THREAD_ENV = ("MCA_THREADS", "NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
@@ -75,25 +74,4 @@ def limit_threads(count: int) -> dict[str, int]:
     return applied
 
 
-_stage_queue: Any = None  # in a pool worker: where its stage announcements go
-
-
-def init_pool_worker(queue: Any, threads: int | None = None) -> None:
-    """The initializer of `capture.batch`'s pool workers: `limit_threads(threads)` (unless None), and `queue` kept
-    for `stage_queue`.
-
-    It lives here, in a module that imports nothing heavy, because a spawned worker imports the initializer's
-    module before it runs it: from `capture.batch` that would load numba (through the pipeline) before its
-    thread count is set, and numba would size its pool to the whole machine in every worker."""
-    global _stage_queue
-    _stage_queue = queue
-    if threads:
-        limit_threads(threads)
-
-
-def stage_queue() -> Any:
-    """In a pool worker: the queue `init_pool_worker` was given (None elsewhere)."""
-    return _stage_queue
-
-
-__all__ = ["THREAD_ENV", "available_cores", "init_pool_worker", "limit_threads", "stage_queue", "threads_per_worker"]
+__all__ = ["THREAD_ENV", "available_cores", "limit_threads", "threads_per_worker"]
