@@ -174,11 +174,29 @@ def _log_noise(coefficients: tuple[float, float], y: np.ndarray) -> np.ndarray:
     return (photon * np.expm1(y) + read) * np.exp(-2.0 * y)
 
 
+def nnls_2(design: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """x >= 0 (2,) minimising |design x - target| for a design (N, 2): what `scipy.optimize.nnls` returns, for
+    two unknowns in closed form. The optimum is the unconstrained least-squares solution when that is
+    non-negative, else the best of the fits with one unknown held at 0 (or both at 0). Ours because importing
+    `scipy.optimize` takes about 0.3 s, on every `mca process`'s critical path (the kernels' warm-up)."""
+    a = np.asarray(design, dtype=np.float64)
+    y = np.asarray(target, dtype=np.float64)
+    candidates = [np.zeros(2)]
+    for column in (0, 1):
+        norm = float(a[:, column] @ a[:, column])
+        if norm > 0:
+            single = np.zeros(2)
+            single[column] = max(float(a[:, column] @ y) / norm, 0.0)
+            candidates.append(single)
+    both, _residual, rank, _singular = np.linalg.lstsq(a, y, rcond=None)
+    if rank == 2 and np.all(both >= 0):
+        return both
+    return min(candidates, key=lambda x: float(np.sum((a @ x - y) ** 2)))
+
+
 def _photon_read_curve(levels: np.ndarray, variances: np.ndarray) -> tuple[float, float]:
     """(A, B) >= 0 of `_log_noise` fitted to the brightness bins' variances in relative terms; texture only
     raises a bin, so bins more than 1.5 times above the curve are dropped and it is fitted again."""
-    from scipy.optimize import nnls  # imported here, as in `processing.calibration`: not on every start-up
-
     design = np.stack([np.expm1(levels), np.ones_like(levels)], axis=1) * np.exp(-2.0 * levels)[:, None]
     keep = variances > 0
     coefficients = (0.0, 0.0)
@@ -186,7 +204,7 @@ def _photon_read_curve(levels: np.ndarray, variances: np.ndarray) -> tuple[float
         if np.count_nonzero(keep) < 2:
             break
         weight = 1.0 / variances[keep]
-        solution = nnls(design[keep] * weight[:, None], variances[keep] * weight)[0]
+        solution = nnls_2(design[keep] * weight[:, None], variances[keep] * weight)
         coefficients = (float(solution[0]), float(solution[1]))
         fitted = design @ np.array(coefficients)
         again = (variances > 0) & (variances <= 1.5 * fitted)

@@ -233,3 +233,49 @@ def test_the_signal_evidence_is_the_signal_weight_and_without_a_noise_model_the_
     assert float(np.median(got[:, 10:50])) < 0.3 < 0.9 < float(np.median(got[:, 80:150]))  # flat half: noise alone
     without = cost_input(noisy, False)
     np.testing.assert_array_equal(_evidence(without, dense, "signal", 0.1), _evidence(without, dense, "texture", 0.1))
+
+
+# --- the photon-and-read-noise fit's non-negative least squares ----------------------------------------------------
+
+
+def test_the_two_unknown_nnls_is_scipys():
+    from scipy.optimize import nnls
+
+    from mca.processing.features import nnls_2
+
+    rng = np.random.default_rng(3)
+    clamped = 0
+    for trial in range(400):
+        rows = int(rng.integers(2, 30))
+        design = rng.normal(size=(rows, 2)) * rng.uniform(0.01, 100.0, size=2)
+        if trial % 3 == 0:  # the noise curve's shape: positive, one column decaying
+            levels = rng.uniform(0.0, 3.0, rows)
+            design = np.stack([np.expm1(levels), np.ones(rows)], axis=1) * np.exp(-2.0 * levels)[:, None]
+        target = design @ rng.normal(size=2) + rng.normal(scale=rng.uniform(0.0, 1.0), size=rows)
+        ours = nnls_2(design, target)
+        theirs = nnls(design, target)[0]
+        clamped += int(np.any(theirs == 0.0))
+        assert np.all(ours >= 0)
+        residual_ours = np.linalg.norm(design @ ours - target)
+        residual_theirs = np.linalg.norm(design @ theirs - target)
+        assert residual_ours <= residual_theirs * (1 + 1e-9) + 1e-12, (trial, ours, theirs)
+        np.testing.assert_allclose(ours, theirs, rtol=1e-7, atol=1e-9 * np.abs(theirs).max(initial=1.0))
+    assert clamped > 50  # the boundary cases were exercised, not only interior optima
+
+
+def test_the_kernels_warm_up_does_not_import_scipy_optimize():
+    """scipy.optimize costs about 0.3 s to import, on the critical path of every `mca process` (the kernels load
+    on a helper thread while the photograph is read, and the pipeline waits for them)."""
+    import subprocess
+    import sys
+
+    script = (
+        "import sys\n"
+        "from mca.devices.profiles import load_profile\n"
+        "from mca.processing.pipeline import load_kernels\n"
+        "load_kernels(load_profile('paper-70d').aperture)\n"
+        "print(sorted(m for m in sys.modules if m.startswith('scipy.optimize')))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip() == "[]", done.stdout
