@@ -41,7 +41,8 @@ from pathlib import Path
 
 from mca.capture.pipeline_app import STAGES
 
-STAGE_ORDER = (*STAGES[:-1], "pipeline", STAGES[-1])  # the progress stages, the pipeline's total before the writes
+# the progress stages (the wait for the kernels' warm-up after the read), the pipeline's total before the writes
+STAGE_ORDER = (STAGES[0], "kernels", *STAGES[1:-1], "pipeline", STAGES[-1])
 MCA = str(Path(sys.executable).with_name("mca"))
 REPO = Path(__file__).resolve().parents[1]
 MIDDLEBURY = REPO.parent / "shared" / "data" / "middlebury"

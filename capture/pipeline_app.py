@@ -1043,7 +1043,10 @@ def _process(
     t0 = time.perf_counter()
     loaded = read_input(input_path)
     timings["read"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
     _wait_for_kernels()  # never two parallel kernels at once: numba's fallback thread pool cannot take it
+    if pipeline is None:
+        timings["kernels"] = time.perf_counter() - t0  # what the warm-up adds once the photograph is read
     _announce(on_stage, "read")
     optics = _optics_for(profile, loaded)
     camera = api.camera_for(optics, loaded)

@@ -7,6 +7,7 @@ SDK's reader `rerun.chunk.RrdReader` (image sizes, values); inputs are a small C
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -486,6 +487,8 @@ def test_real_pipeline_recording_verifies(tmp_path: Path, maker, name: str, size
     record = tmp_path / "out" / "c.rrd"
     outcome = process_file(source, tmp_path / "out", PROFILE, record_path=record)
     assert outcome.status == "done", outcome.reason
+    timings = json.loads((outcome.output_dir / "result.json").read_text())["timings_s"]
+    assert timings["kernels"] >= 0.0 and {"read", "pipeline", "write"} <= set(timings)
     assert rrd_verify(record).returncode == 0
     entities = rrd_print(record)
     for entity in (
