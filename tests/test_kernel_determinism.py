@@ -7,7 +7,7 @@ share an empty cache directory: the first, with two workers, compiles every kern
 cache; the second, in one process, loads it. Their outputs must be identical, bit for bit.
 
 The first run is also a fresh install's first batch: compiling in a pool worker once stopped every file with
-numba's "Cannot set NUMBA_NUM_THREADS ... once the threads have been launched" (`capture/threads.py`).
+numba's "Cannot set NUMBA_NUM_THREADS ... once the threads have been launched" (`capture/pool_worker.py`).
 """
 
 from __future__ import annotations
