@@ -170,12 +170,13 @@ def _robust_plane(
         if sw <= 0:
             break
         wx, wy = w * x, w * y
+        sx, sy, sxy = float(np.sum(wx)), float(np.sum(wy)), float(np.sum(wx * y))
         ridge = 1e-6 * sw  # a negligible ridge on the slopes, as before
         normal = np.array(
             [
-                [float(np.sum(wx * x)) + ridge, float(np.sum(wx * y)), float(np.sum(wx))],
-                [float(np.sum(wx * y)), float(np.sum(wy * y)) + ridge, float(np.sum(wy))],
-                [float(np.sum(wx)), float(np.sum(wy)), sw],
+                [float(np.sum(wx * x)) + ridge, sxy, sx],
+                [sxy, float(np.sum(wy * y)) + ridge, sy],
+                [sx, sy, sw],
             ]
         )
         rhs = np.array([float(np.sum(wx * values)), float(np.sum(wy * values)), float(np.sum(w * values))])
