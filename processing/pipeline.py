@@ -261,11 +261,15 @@ def load_kernels(aperture: FilterAperture, optics: MCAOptics | None = None, qual
     rng = np.random.default_rng(0)
     texture = rng.random((_KERNEL_SHAPE[0], _KERNEL_SHAPE[1], 3)).astype(np.float32)
     planes = cv2.GaussianBlur(texture, (0, 0), 1.5) + np.float32(0.2)
-    run_pipeline(planes, aperture, optics, params=PipelineParams.for_quality(quality))
+    params = PipelineParams.for_quality(quality)
+    run_pipeline(planes, aperture, optics, disparity_range_px=_KERNEL_RANGE_PX, params=params)
     return time.perf_counter() - started
 
 
 _KERNEL_SHAPE = (192, 256)  # large enough for every stage to run its kernels (quarter size >= 24 px)
+# A few candidates are enough to call every kernel: the optics' own range at this size would be ~100 of them,
+# and computing their costs took about a second of the warm-up, on the critical path of every `mca process`.
+_KERNEL_RANGE_PX = (-2.0, 2.0)
 
 
 @dataclass
