@@ -15,13 +15,18 @@ Methods:
   (`processing.peers.colour_line_wta_subpixel`);
 - `bando`: Bando et al. 2008's released program (`capture.peer_bando`), when built.
 The peers run on the same planes the pipeline gets (Bayer planes moved to common sample
-positions); their answers are cached in `.peers/` of the render folder (keyed by the capture
-file, the range and the method's parameters), so a second evaluation only reruns `ours`.
+positions); their answers are cached in `.peers/` of the render folder, keyed by what decides them: the planes
+they were given, the search range, the method's parameters and its code (`peer_code_digest`: our modules it runs,
+numpy's and OpenCV's versions, the program's bytes). A second evaluation only reruns `ours`; a change to a
+peer's code or to how a capture is read makes the peer run again.
 """
 
 from __future__ import annotations
 
+import ast
+import functools
 import hashlib
+import importlib.util
 import json
 import tempfile
 import time
@@ -182,27 +187,79 @@ def run_ours(entry: RenderEntry, profile: Any, out_root: Path) -> tuple[Estimate
     return ours, ours_raw
 
 
-def _cache_key(entry: RenderEntry, method: str, context: _Context, params: dict[str, Any]) -> str:
-    stat = entry.image_path.stat()
+def _mca_imports(module: str) -> set[str]:
+    """`module` and every `mca` module it imports, directly or through others, at the top or inside a function
+    (read from the source, not imported)."""
+    seen: set[str] = set()
+    pending = [module]
+    while pending:
+        name = pending.pop()
+        spec = importlib.util.find_spec(name) if name not in seen else None
+        if spec is None or spec.origin is None or not spec.origin.endswith(".py"):
+            continue
+        seen.add(name)
+        tree = ast.parse(Path(spec.origin).read_bytes(), spec.origin)
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                pending += [a.name for a in node.names if a.name.split(".")[0] == "mca"]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").split(".")[0] == "mca":
+                # `from mca.x import y`: y is a module of package mca.x or a name in mca.x; find_spec tells
+                pending.append(node.module or "")
+                pending += [f"{node.module}.{a.name}" for a in node.names if _is_module(f"{node.module}.{a.name}")]
+    return seen
+
+
+def _is_module(name: str) -> bool:
+    try:
+        return importlib.util.find_spec(name) is not None
+    except ModuleNotFoundError:  # a name inside a module, not a submodule
+        return False
+
+
+@functools.cache
+def peer_code_digest(module: str, binary: Path | None = None) -> str:
+    """What a peer's answer depends on besides its input and parameters: the source of `module` and of every
+    `mca` module it reaches, numpy's and OpenCV's versions (OpenCV 5 resamples differently from 4) and, for
+    an external program, its bytes."""
+    import cv2
+
+    digest = hashlib.sha256(f"numpy {np.__version__}; opencv {cv2.__version__}".encode())
+    for name in sorted(_mca_imports(module)):
+        spec = importlib.util.find_spec(name)
+        assert spec is not None and spec.origin is not None
+        digest.update(name.encode() + b"\0" + Path(spec.origin).read_bytes() + b"\0")
+    if binary is not None:
+        digest.update(Path(binary).read_bytes())
+    return digest.hexdigest()
+
+
+def _cache_key(entry: RenderEntry, method: str, context: _Context, params: dict[str, Any], code: str) -> str:
+    planes = np.ascontiguousarray(context.planes())
     key = {
         "image": entry.image_path.name,
-        "size": stat.st_size,
-        "mtime_ns": stat.st_mtime_ns,
+        "planes": hashlib.sha256(memoryview(planes).cast("B")).hexdigest() + str(planes.shape) + str(planes.dtype),
         "method": method,
         "range": [round(v, 6) for v in context.range_input_px],
         "params": params,
+        "code": code,
     }
     return hashlib.sha256(json.dumps(key, sort_keys=True).encode("utf-8")).hexdigest()[:16]
 
 
 def _cached_peer(
-    entry: RenderEntry, method: str, context: _Context, params: dict[str, Any], compute: Callable[[], tuple]
+    entry: RenderEntry,
+    method: str,
+    context: _Context,
+    params: dict[str, Any],
+    code: str,
+    compute: Callable[[], tuple],
 ) -> Estimate:
-    """A peer's disparity (input px) from the cache, or computed and cached; distance from the same optics."""
+    """A peer's disparity (input px) from the cache, or computed and cached; distance from the same optics.
+    `code`: `peer_code_digest` of what computes it."""
     from mca.capture.outputs import atomic_path
 
     cache = entry.image_path.parent / PEER_CACHE_DIR
-    path = cache / f"{entry.name}.{method}.{_cache_key(entry, method, context, params)}.npz"
+    path = cache / f"{entry.name}.{method}.{_cache_key(entry, method, context, params, code)}.npz"
     disparity = None
     if path.is_file():
         try:
@@ -238,7 +295,8 @@ def run_wta(entry: RenderEntry, profile: Any, context: _Context) -> Estimate:
         )
         return disparity, time.perf_counter() - started
 
-    return _cached_peer(entry, "wta", context, {"window": WTA_WINDOW_PX, "steps": WTA_STEPS}, compute)
+    params = {"window": WTA_WINDOW_PX, "steps": WTA_STEPS}
+    return _cached_peer(entry, "wta", context, params, peer_code_digest("mca.processing.peers"), compute)
 
 
 def run_bando_peer(entry: RenderEntry, profile: Any, context: _Context, binary: Path) -> Estimate:
@@ -252,7 +310,8 @@ def run_bando_peer(entry: RenderEntry, profile: Any, context: _Context, binary: 
         return answer.disparity_px, answer.seconds
 
     params = {"binary": str(binary), "half_window": HALF_WINDOW}
-    return _cached_peer(entry, "bando", context, params, compute)
+    code = peer_code_digest("mca.capture.peer_bando", Path(binary))
+    return _cached_peer(entry, "bando", context, params, code, compute)
 
 
 def evaluate_rgbd(

@@ -255,3 +255,73 @@ def test_mca_evaluate_rgbd_names_an_empty_folder(tmp_path) -> None:
     result = CliRunner().invoke(app, ["evaluate", "--rgbd", str(tmp_path)])
     assert result.exit_code == 2
     assert "no rendered scene" in result.output and str(tmp_path) in result.output
+
+
+# --- the peers' cache -------------------------------------------------------------------------------------------
+
+_LOADED_BY_WTA = """
+import sys
+import numpy as np
+from mca.devices.profiles import load_profile
+from mca.processing.peers import colour_line_wta_subpixel
+planes = np.random.default_rng(0).random((40, 60, 3)).astype(np.float32)
+colour_line_wta_subpixel(planes, load_profile("paper-70d").aperture, (-2.0, 2.0), window_px=5, steps=9)
+for name, module in sys.modules.items():
+    path = getattr(module, "__file__", None) or ""
+    if name.startswith("mca.") and path.endswith(".py") and not path.endswith("__init__.py"):
+        print(name)
+"""
+
+
+def test_the_wta_cache_key_covers_every_module_the_peer_runs(tmp_path: Path) -> None:
+    """`peer_code_digest` reads the modules a peer reaches from their source; a fresh process that runs the WTA
+    peer loads no module of ours outside that set, so no code it runs can change without changing the key."""
+    import subprocess
+
+    from mca.capture.rgbd_evaluation import _mca_imports
+
+    done = subprocess.run([sys.executable, "-c", _LOADED_BY_WTA], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    loaded = {line for line in done.stdout.splitlines() if line.startswith("mca.processing.")}
+    covered = _mca_imports("mca.processing.peers")
+    assert {"mca.processing.peers", "mca.processing.disparity", "mca.processing.sampling"} <= covered
+    assert loaded <= covered, sorted(loaded - covered)
+
+
+def test_a_peer_runs_again_when_its_code_or_its_input_changes(tmp_path: Path) -> None:
+    """The cached answer is reused only for the same planes, range, parameters and code."""
+    from types import SimpleNamespace
+
+    from mca.capture.rgbd_evaluation import RenderEntry, _cached_peer, _Context, peer_code_digest
+
+    image = tmp_path / "Scene-s1.tiff"
+    image.write_bytes(b"not read here")
+    entry = RenderEntry("Scene-s1", ".", image, tmp_path / "truth", {})
+    loaded = SimpleNamespace(pixel_scale=1.0, input_size_px=(6, 4))
+    optics = SimpleNamespace(distance_mm=lambda d: 1000.0 + d)
+    planes = np.zeros((4, 6, 3), np.float32)
+    runs = []
+
+    def compute() -> tuple[np.ndarray, float]:
+        runs.append(1)
+        return np.full((4, 6), float(len(runs)), np.float32), 0.5
+
+    def answer(code: str, context: _Context) -> float:
+        return float(_cached_peer(entry, "wta", context, {"window": 15}, code, compute).disparity_px[0, 0])
+
+    context = _Context(loaded, optics, (-2.0, 3.0), aligned=planes)
+    assert answer("code-a", context) == 1.0
+    assert answer("code-a", context) == 1.0 and len(runs) == 1  # from the cache
+    assert answer("code-b", context) == 2.0  # the peer's code changed
+    changed = _Context(loaded, optics, (-2.0, 3.0), aligned=planes + np.float32(0.001))
+    assert answer("code-b", changed) == 3.0  # the capture reads differently
+    assert answer("code-b", _Context(loaded, optics, (-2.0, 4.0), aligned=planes)) == 4.0  # another range
+    assert len(list((tmp_path / ".peers").glob("Scene-s1.wta.*.npz"))) == 1  # the stale answers are gone
+
+    program = tmp_path / "program"
+    program.write_bytes(b"one build")
+    first = peer_code_digest("mca.capture.peer_bando", program)
+    program.write_bytes(b"another build")
+    peer_code_digest.cache_clear()
+    assert peer_code_digest("mca.capture.peer_bando", program) != first
+    assert peer_code_digest("mca.capture.peer_bando") != peer_code_digest("mca.processing.peers")
