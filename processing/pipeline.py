@@ -254,9 +254,11 @@ def load_kernels(aperture: FilterAperture, optics: MCAOptics | None = None, qual
     """Run the pipeline once on a small synthetic capture, so that every compiled kernel it takes is loaded
     (from numba's cache, or compiled on the very first run). Returns the seconds it took.
 
-    A fresh process spends about a second loading kernels the first time each is called; `mca process`
+    A fresh process spends about half a second loading kernels the first time each is called; `mca process`
     does this on a helper thread while the photograph is being read (`capture.pipeline_app`), so that the
-    pipeline then finds them loaded. Nothing of it is kept: the answers are the same with or without it."""
+    pipeline then finds them loaded. The search spans a few candidates only (`_KERNEL_RANGE_PX`): the kernels
+    are the same for any range, and this runs on the critical path whenever it outlasts the read. Nothing of it
+    is kept: the answers are the same with or without it."""
     started = time.perf_counter()
     rng = np.random.default_rng(0)
     texture = rng.random((_KERNEL_SHAPE[0], _KERNEL_SHAPE[1], 3)).astype(np.float32)
