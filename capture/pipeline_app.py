@@ -731,8 +731,8 @@ _kernels_thread: threading.Thread | None = None
 def _load_kernels_once(profile: CameraProfile, quality: str) -> None:
     """The first time in this process: load the pipeline's compiled kernels (`processing.pipeline.load_kernels`)
     on a daemon thread, so that they load while the first photograph is being read (about half a second
-    saved on a one-file `mca process`; a 20 MP CR2's read takes longer than the warm-up). A failure there costs nothing: the pipeline loads what it needs.
-    `_wait_for_kernels` waits for it before any pipeline runs."""
+    saved on a one-file `mca process`; a 20 MP CR2's read takes longer than the warm-up). A failure there
+    costs nothing: the pipeline loads what it needs. `_wait_for_kernels` waits for it before any pipeline runs."""
     global _kernels_thread
     with _kernels_loading:
         if _kernels_thread is not None:
