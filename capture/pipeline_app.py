@@ -198,9 +198,9 @@ def _grown(box: tuple[slice, slice], shape: tuple[int, ...], margin: int) -> tup
 
 def region_boxes(labels: np.ndarray) -> list[tuple[slice, slice] | None]:
     """Bounding boxes of the regions: boxes[id - 1] bounds region id (None when it has no pixel)."""
-    from scipy import ndimage
+    from mca.processing.mpi import label_boxes
 
-    return ndimage.find_objects(np.asarray(labels).astype(np.int32, copy=False))
+    return label_boxes(np.asarray(labels))
 
 
 def region_quads(

@@ -41,7 +41,7 @@ from mca.processing.dense import DenseDisparity, DenseParams, estimate_dense, qu
 from mca.processing.depth import depth_map_mm, region_depth
 from mca.processing.disparity import parallel_map, warp_channels
 from mca.processing.features import display_gamma
-from mca.processing.mpi import all_in_focus, multi_plane_images
+from mca.processing.mpi import all_in_focus, label_boxes, multi_plane_images
 from mca.processing.optics import MCAOptics
 from mca.processing.refine import Refinement, RefineParams, refine_regions
 from mca.processing.result import DepthResult, NullRecorder, Recorder, Region
@@ -264,7 +264,8 @@ def load_kernels(aperture: FilterAperture, optics: MCAOptics | None = None, qual
     texture = rng.random((_KERNEL_SHAPE[0], _KERNEL_SHAPE[1], 3)).astype(np.float32)
     planes = cv2.GaussianBlur(texture, (0, 0), 1.5) + np.float32(0.2)
     params = PipelineParams.for_quality(quality)
-    run_pipeline(planes, aperture, optics, disparity_range_px=_KERNEL_RANGE_PX, params=params)
+    result = run_pipeline(planes, aperture, optics, disparity_range_px=_KERNEL_RANGE_PX, params=params)
+    label_boxes(result.labels)  # the outputs' region boxes
     return time.perf_counter() - started
 
 

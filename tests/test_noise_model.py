@@ -261,21 +261,3 @@ def test_the_two_unknown_nnls_is_scipys():
         assert residual_ours <= residual_theirs * (1 + 1e-9) + 1e-12, (trial, ours, theirs)
         np.testing.assert_allclose(ours, theirs, rtol=1e-7, atol=1e-9 * np.abs(theirs).max(initial=1.0))
     assert clamped > 50  # the boundary cases were exercised, not only interior optima
-
-
-def test_the_kernels_warm_up_does_not_import_scipy_optimize():
-    """scipy.optimize costs about 0.3 s to import, on the critical path of every `mca process` (the kernels load
-    on a helper thread while the photograph is read, and the pipeline waits for them)."""
-    import subprocess
-    import sys
-
-    script = (
-        "import sys\n"
-        "from mca.devices.profiles import load_profile\n"
-        "from mca.processing.pipeline import load_kernels\n"
-        "load_kernels(load_profile('paper-70d').aperture)\n"
-        "print(sorted(m for m in sys.modules if m.startswith('scipy.optimize')))\n"
-    )
-    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stderr[-2000:]
-    assert done.stdout.strip() == "[]", done.stdout

@@ -296,6 +296,7 @@ import mca.processing as package
 import pkgutil, importlib
 from mca.devices.profiles import load_profile
 from mca.processing.optics import MCAOptics
+from mca.processing.mpi import label_boxes
 from mca.processing.pipeline import PipelineParams, load_kernels, run_pipeline
 
 modules = [importlib.import_module(f"mca.processing.{m.name}") for m in pkgutil.iter_modules(package.__path__)]
@@ -307,7 +308,8 @@ quality = sys.argv[2]
 load_kernels(profile.aperture, optics, quality)
 before = {name: len(k.signatures) for name, k in kernels.items()}
 image, _, _ = two_boxes_scene(profile.aperture)
-run_pipeline(image, profile.aperture, optics, params=PipelineParams.for_quality(quality))
+result = run_pipeline(image, profile.aperture, optics, params=PipelineParams.for_quality(quality))
+label_boxes(result.labels)  # what the outputs take after the pipeline
 new = [name for name, k in kernels.items() if len(k.signatures) > before[name]]
 used = [name for name, n in before.items() if n > 0]
 print("NEW", ",".join(new))
@@ -335,3 +337,25 @@ def test_load_kernels_loads_every_kernel_the_pipeline_then_takes(tmp_path, quali
     lines = dict(line.split(" ", 1) if " " in line else (line, "") for line in done.stdout.splitlines())
     assert lines["NEW"].strip() == ""
     assert int(lines["USED"]) >= 10  # the dense search, the aggregation, SLIC, the surfaces, the refinement ...
+
+
+@pytest.mark.parametrize("dtype", [np.int32, np.uint16, np.int64, np.uint8])
+def test_label_boxes_are_scipys_find_objects(dtype):
+    """`mpi.label_boxes` (the layers' and the scene's region boxes) against `scipy.ndimage.find_objects` on random
+    label images: ids missing in between, 0 and negative labels that are no region, single rows and columns."""
+    from scipy import ndimage
+
+    from mca.processing.mpi import label_boxes
+
+    rng = np.random.default_rng(7)
+    signed = np.issubdtype(dtype, np.signedinteger)
+    for _ in range(60):
+        h, w = (int(v) for v in rng.integers(1, 30, 2))
+        labels = rng.integers(-2 if signed else 0, 9, (h, w)).astype(dtype)
+        labels[labels == 4] = 0  # an id with no pixel below the largest
+        expected = ndimage.find_objects(np.maximum(labels, 0).astype(np.int32))
+        assert label_boxes(labels) == expected
+    assert label_boxes(np.zeros((5, 4), dtype)) == []
+    corner = np.zeros((6, 7), dtype)
+    corner[5, 6] = 2
+    assert label_boxes(corner) == [None, (slice(5, 6), slice(6, 7))]

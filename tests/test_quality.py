@@ -223,3 +223,23 @@ def test_files_processed_in_this_process_keep_every_thread(tmp_path, profile, mo
     report = run_batch([make_png(tmp_path / "a.png")], tmp_path / "out", profile, pipeline=fake_pipeline)
     assert report.outcomes[0].status == "done"
     assert cv2.getNumThreads() == before  # --workers 1: nothing is limited
+
+
+def test_mca_process_does_not_import_the_slow_scipy_modules(small_cr2, tmp_path):
+    """`scipy.optimize` (0.3 s) and `scipy.ndimage` (0.2 s) are slow to import, and a one-file `mca process` would
+    pay for them on its critical path: the noise fit is ours (`features.nnls_2`), and so are the region boxes of
+    the outputs (`mpi.label_boxes`). A whole run, the real pipeline, every output written, in a fresh process."""
+    script = (
+        "import sys\n"
+        "from mca.capture.cli import main\n"
+        f"sys.argv = ['mca', 'process', {str(small_cr2)!r}, '--out', {str(tmp_path / 'out')!r}]\n"
+        "try:\n"
+        "    main()\n"
+        "except SystemExit as stop:\n"
+        "    assert not stop.code, stop.code\n"
+        "print(sorted(m for m in sys.modules if m.startswith(('scipy.optimize', 'scipy.ndimage'))))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert (tmp_path / "out" / small_cr2.stem / RESULT_NAME).is_file()
+    assert done.stdout.strip().splitlines()[-1] == "[]", done.stdout[-2000:]

@@ -161,12 +161,12 @@ def front_to_back(result: DepthResult) -> list[Any]:
 
 def layer_windows(result: DepthResult, margin_px: int = 8) -> dict[int, tuple[slice, slice]]:
     """Bounding box (rows, cols) of each region's label, padded by `margin_px`: where its layer can be opaque."""
-    from scipy import ndimage
+    from mca.processing.mpi import label_boxes
 
     labels = np.asarray(result.labels)
     h, w = labels.shape
     windows = {}
-    for index, box in enumerate(ndimage.find_objects(labels.astype(np.int32, copy=False))):
+    for index, box in enumerate(label_boxes(labels)):
         if box is not None:
             rows, cols = box
             windows[index + 1] = (
