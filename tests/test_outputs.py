@@ -11,7 +11,7 @@ import pytest
 import tifffile
 
 from mca.capture import outputs
-from mca.capture.pipeline_app import Pinhole, scene_points, upsample_nearest
+from mca.capture.pipeline_app import Pinhole, label_pixels_input, scene_points, upsample_nearest
 
 
 def _leftovers(folder):
@@ -187,6 +187,24 @@ def test_failed_write_leaves_no_temporary_file_and_keeps_the_old_one(tmp_path, m
         outputs.write_glb(tmp_path / "scene.glb", [])
     assert json.loads(target.read_text()) == {"version": 1}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["result.json"]
+
+
+@pytest.mark.parametrize("scale", [1.0, 2.0, 4.0, 1.5, 3.0, 2.5])
+def test_label_pixels_input_counts_the_enlarged_map(scale):
+    """result.json's region pixels: counted from the processing-resolution labels, the same as counting the
+    region map `upsample_nearest` makes (the regions.png one), for whole and fractional scales, input sizes
+    cut short of and past the enlarged map, and ids with no pixel."""
+    rng = np.random.default_rng(int(scale * 10))
+    for _ in range(20):
+        h, w = (int(v) for v in rng.integers(1, 25, 2))
+        labels = rng.integers(0, 7, (h, w)).astype(np.uint16)
+        width = max(1, int(w * scale) + int(rng.integers(-2, 3)))
+        height = max(1, int(h * scale) + int(rng.integers(-2, 3)))
+        up = upsample_nearest(labels, scale, (width, height))
+        expected = np.bincount(up.ravel().astype(np.intp), minlength=9)
+        counts = label_pixels_input(labels, scale, (width, height), minlength=9)
+        np.testing.assert_array_equal(counts, expected)
+        assert counts.sum() == width * height
 
 
 def test_upsample_and_back_projection():

@@ -165,6 +165,7 @@ def test_process_file_writes_the_full_set(tmp_path, profile, maker, size):
         "slant",
     }
     assert by_id[1]["pixels"] + by_id[2]["pixels"] == width * height
+    assert [by_id[i]["pixels"] for i in (1, 2)] == [int(np.sum(labels == i)) for i in (1, 2)]  # as regions.png
     assert by_id[1]["order"] == 0 and by_id[1]["occludes"] == [2] and by_id[1]["slant"] is None
     assert by_id[2]["slant"] == {"plane": [0.001, 0.0, pytest.approx(by_id[2]["disparity_px"])]}
     assert by_id[1]["distance_mm"] == pytest.approx(950.0, abs=0.5)  # eqs. 2, 13/14 vs the exact thin lens
