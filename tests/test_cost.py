@@ -34,9 +34,10 @@ def bilinear(plane: np.ndarray, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
 
 
 def reference_cost(
-    bands: list[np.ndarray], shifts: np.ndarray, d: float, window: int, noise: float, sample=bspline
+    bands: list[np.ndarray], shifts: np.ndarray, d: float | np.ndarray, window: int, noise: float, sample=bspline
 ) -> np.ndarray:
-    """Bando's colour-line measure written out: channels sampled at x + d s_c (`sample`), products
+    """Bando's colour-line measure written out: channels sampled at x + d s_c (`sample`; `d` one disparity or
+    one per pixel), products
     pooled over the bands, window sums clamped at the borders, L = 1 - rg^2 - rb^2 - gb^2 + 2 rg rb gb."""
     h, w = bands[0].shape[:2]
     ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
@@ -82,6 +83,24 @@ def test_per_pixel_maps_equal_the_volume_at_constant_disparity():
     assert np.allclose(cost_at(bands, APERTURE, maps, 9, 2e-3), volume, atol=1e-5)
     spline = cost_volume(bands, APERTURE, np.array([-1.25, 0.5, 2.0]), 9, 2e-3, sampling="bspline")
     assert np.allclose(cost_at(bands, APERTURE, maps, 9, 2e-3, sampling="bspline"), spline, atol=1e-5)
+
+
+@pytest.mark.parametrize("sampling", ["bspline", "bilinear"])
+def test_per_pixel_maps_at_varying_disparity_match_the_written_out_measure(sampling):
+    """The refinement's per-pixel costs where the disparity changes from pixel to pixel (a slanted plane with a
+    step; taps past every border): each channel sampled at x + d(x) s_c, against scipy's spline or the exact
+    bilinear sampler written out."""
+    h, w = 36, 52
+    bands = feature_bands(texture((h, w), 9, blur_px=1.2))
+    shifts = channel_shifts(APERTURE)
+    ys, xs = np.mgrid[0:h, 0:w]
+    ramp = (-4.0 + 0.16 * xs + 0.05 * ys + np.where(xs > 30, 1.7, 0.0)).astype(np.float32)
+    maps = np.stack([ramp, -ramp, ramp + np.float32(0.37)])
+    got = cost_at(stack_bands(bands), APERTURE, maps, 7, 2e-3, sampling=sampling)
+    sample = bspline if sampling == "bspline" else bilinear
+    for k in range(len(maps)):
+        expected = reference_cost(bands, shifts, maps[k].astype(np.float64), 7, 2e-3, sample=sample)
+        assert np.abs(got[k] - expected).max() < 2e-4, k
 
 
 def test_bilinear_volume_matches_the_written_out_measure():
