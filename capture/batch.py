@@ -867,6 +867,7 @@ def print_summary(report: BatchReport, console: Any = None) -> None:
     )
     if report.recording is not None:
         console.print(f"recording: {report.recording}", highlight=False)
+    _print_notes(report.outcomes)
     passed_over = [o for o in report.outcomes if o.status == "skipped" and not _finished_before(o)]
     if passed_over:
         print("skipped files (not taken as photographs):", file=sys.stderr)
@@ -876,6 +877,17 @@ def print_summary(report: BatchReport, console: Any = None) -> None:
         print("failed files:", file=sys.stderr)
         for outcome in report.failed:
             print(f"  {outcome.reason}", file=sys.stderr)
+
+
+def _print_notes(outcomes: list[FileOutcome]) -> None:
+    """The notes of done files (result.json's `notes`), each once, with the files it concerns."""
+    files: dict[str, list[str]] = {}
+    for outcome in outcomes:
+        for note in outcome.notes:
+            files.setdefault(note, []).append(outcome.input_path.name)
+    for note, names in files.items():
+        shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+        print(f"note: {shown}: {note}", file=sys.stderr)
 
 
 def _finished_before(outcome: FileOutcome) -> bool:

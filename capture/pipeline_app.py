@@ -66,6 +66,7 @@ class FileOutcome:
     seconds: float = 0.0
     reason: str | None = None  # why it failed or was skipped
     regions: int | None = None  # number of regions found, when done
+    notes: tuple[str, ...] = ()  # what the user should know about a done file's result (result.json's notes)
 
 
 # --- reading --------------------------------------------------------------------------------------------------------
@@ -702,6 +703,7 @@ def result_document(
         "regions": regions,
         "timings_s": {k: round(float(v), 6) for k, v in timings_s.items()},
         "status": "done",
+        "notes": [note] if (note := api.pitch_note(profile, loaded)) is not None else [],
         "mode": mode,
         "units": {
             "depth.tiff": "mm from the lens along the optical axis, NaN unknown"
@@ -713,6 +715,7 @@ def result_document(
             "scene": SCENE_FRAME + " (scene.ply, scene.glb, the recording's world)",
         },
         "input_size_px": list(loaded.input_size_px),
+        "pixel_pitch_source": "file" if loaded.pixel_pitch_mm is not None else "profile",
         "processing_size_px": [int(result.labels.shape[1]), int(result.labels.shape[0])],
         "pixel_scale": float(result.pixel_scale),
         "pixel_pitch_mm": None if optics is None else float(optics.pixel_pitch_mm),
@@ -1017,7 +1020,7 @@ def process_file(
             staging = claim.new_staging()
             try:
                 with read_policy(max_megapixels=max_megapixels, photograph=True):
-                    regions = _process(
+                    regions, notes = _process(
                         input_path,
                         staging,
                         profile,
@@ -1037,7 +1040,7 @@ def process_file(
         raise
     except Exception as exc:  # one bad file must never stop a batch: report it, keep going
         return outcome("failed", out_dir, reason=user_message(input_path, exc))
-    return outcome("done", out_dir, regions=regions)
+    return outcome("done", out_dir, regions=regions, notes=notes)
 
 
 def _process(
@@ -1052,7 +1055,7 @@ def _process(
     recording_id: str | None = None,
     live_recorder: Any = None,
     quality: str = "full",
-) -> int:
+) -> tuple[int, tuple[str, ...]]:
     run = pipeline or _default_pipeline()
     if pipeline is None:
         _load_kernels_once(profile, quality)  # on a helper thread, while the photograph is read
@@ -1106,7 +1109,7 @@ def _process(
     _announce(on_stage, "write")
     document = result_document(input_path, profile, result, loaded, optics, written, timings, quality=quality)
     outputs.write_json(out_dir / RESULT_NAME, document)
-    return len(result.regions)
+    return len(result.regions), tuple(document["notes"])
 
 
 __all__ = [

@@ -237,7 +237,7 @@ def _cache_key(entry: RenderEntry, method: str, context: _Context, params: dict[
     planes = np.ascontiguousarray(context.planes())
     key = {
         "image": entry.image_path.name,
-        "planes": hashlib.sha256(memoryview(planes).cast("B")).hexdigest() + str(planes.shape) + str(planes.dtype),
+        "planes": hashlib.sha256(planes.tobytes()).hexdigest() + str(planes.shape) + str(planes.dtype),
         "method": method,
         "range": [round(v, 6) for v in context.range_input_px],
         "params": params,

@@ -395,3 +395,47 @@ def test_a_batch_killed_half_way_resumes_without_redoing_finished_files(tmp_path
     assert {n: (out / n / RESULT_NAME).stat().st_mtime_ns for n in finished} == stamps
     for name in names:
         assert files_under(out / name) == FULL_SET  # no half-written or temporary files survive
+
+
+# --- the pitch of an image that names no camera --------------------------------------------------------------------
+
+
+def test_an_image_naming_no_camera_gets_a_note_on_its_assumed_pitch(tmp_path, profile):
+    """A PNG names no camera: its pixel pitch is the profile's, which is right for a crop at full resolution and
+    wrong by the scale for a downscaled frame. result.json says so, with the pitch the other reading would take;
+    a raw that names its body, or an image at the sensor's own size, gets no note."""
+    from dataclasses import replace
+
+    from mca.capture.api import pitch_note, read_input
+
+    png = make_png(tmp_path / "small.png")  # 64 x 48, the sensor 5472 x 3648
+    note = pitch_note(profile, read_input(png))
+    assert note is not None
+    assert "64x48" in note and "5472x3648" in note and "0.004109 mm" in note
+    assert f"{0.004109 * 5472 / 64:.6g} mm" in note  # the pitch of the whole frame scaled down to 64 px
+    outcome = process_file(png, tmp_path / "out", profile, pipeline=fake_pipeline)
+    assert outcome.status == "done" and outcome.notes == (note,)
+    document = json.loads((tmp_path / "out" / "small" / RESULT_NAME).read_text())
+    assert document["notes"] == [note] and document["pixel_pitch_source"] == "profile"
+
+    assert pitch_note(replace(profile, width_px=64, height_px=48), read_input(png)) is None  # the sensor's size
+    assert pitch_note(load_profile("bando2008"), read_input(png)) is None  # no lens: no distances to be off
+    raw = make_cr2(tmp_path / "body.CR2")  # names the EOS 70D: the pitch comes from the body
+    assert read_input(raw).pixel_pitch_mm is not None and pitch_note(profile, read_input(raw)) is None
+    outcome = process_file(raw, tmp_path / "out", profile, pipeline=fake_pipeline)
+    assert outcome.notes == ()
+    document = json.loads((tmp_path / "out" / "body" / RESULT_NAME).read_text())
+    assert document["notes"] == [] and document["pixel_pitch_source"] == "file"
+
+
+def test_the_summary_prints_each_note_once_with_its_files(tmp_path, capsys):
+    from mca.capture.batch import _print_notes
+    from mca.capture.pipeline_app import FileOutcome
+
+    outcomes = [
+        FileOutcome(tmp_path / f"{name}.png", "done", tmp_path, notes=notes)
+        for name, notes in (("a", ("size A",)), ("b", ("size A",)), ("c", ()), ("d", ("size B",)))
+    ]
+    _print_notes(outcomes)
+    lines = capsys.readouterr().err.splitlines()
+    assert lines == ["note: a.png, b.png: size A", "note: d.png: size B"]
