@@ -249,6 +249,8 @@ def _split_at_valleys(surfaces: Surfaces, disparity: np.ndarray, root: np.ndarra
         if ratio >= params.split_valley:
             continue
         part = levels[flat[inside]] > t  # the pixels of the superpixels beyond the valley
+        if part.all() or not part.any():
+            continue  # every superpixel's mean on one side: nothing to split off (and no spread of an empty part)
         if max(_level_spread_px(region_values[part]), _level_spread_px(region_values[~part])) <= level_px:
             root[members[levels[members] > t]] = next_id
             pixel_root[inside[part]] = next_id
