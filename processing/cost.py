@@ -67,6 +67,26 @@ def _bspline_weights(t: float) -> tuple[float, float, float, float]:
 
 
 @nb.njit(cache=True, fastmath=FASTMATH, inline="always")
+def _bspline(img: np.ndarray, y: float, x: float) -> float:
+    """img sampled at (y, x) through the cubic B-spline (4 x 4 taps, indices clamped to the image)."""
+    h, w = img.shape
+    y0 = int(np.floor(y))
+    x0 = int(np.floor(x))
+    wy0, wy1, wy2, wy3 = _bspline_weights(y - y0)
+    wx0, wx1, wx2, wx3 = _bspline_weights(x - x0)
+    xa = min(max(x0 - 1, 0), w - 1)
+    xb = min(max(x0, 0), w - 1)
+    xc = min(max(x0 + 1, 0), w - 1)
+    xd = min(max(x0 + 2, 0), w - 1)
+    total = 0.0
+    for j in range(4):
+        row = img[min(max(y0 - 1 + j, 0), h - 1)]
+        wy = wy0 if j == 0 else (wy1 if j == 1 else (wy2 if j == 2 else wy3))
+        total += wy * (wx0 * row[xa] + wx1 * row[xb] + wx2 * row[xc] + wx3 * row[xd])
+    return total
+
+
+@nb.njit(cache=True, fastmath=FASTMATH, inline="always")
 def _sample_row(src: np.ndarray, y: int, sx: float, sy: float, out: np.ndarray, tmp: np.ndarray) -> None:
     """out[x] = src sampled through the cubic B-spline at (x + sx, y + sy), tap indices clamped to the image;
     separable: the four rows are combined into `tmp` first."""
@@ -176,46 +196,13 @@ def _gather_row(src: np.ndarray, at: np.ndarray, frac: np.ndarray, out: np.ndarr
 
 
 @nb.njit(cache=True, fastmath=FASTMATH, inline="always")
-def _row_taps_bspline(
-    h: int, w: int, y: int, disparity_row: np.ndarray, sx: float, sy: float, at: np.ndarray, weights: np.ndarray
-):
-    """The cubic B-spline taps (4 x 4) of row y shifted by d(x) (sx, sy): at[0..3, x] the four rows and at[4..7, x]
-    the four columns (floor - 1 .. floor + 2, clamped to the image), weights[0..3, x] the rows' and
-    weights[4..7, x] the columns' weights. Made once per channel and row, used for every band
-    (`_gather_row_bspline`)."""
+def _sample_row_map_bspline(src: np.ndarray, y: int, disparity_row: np.ndarray, sx: float, sy: float, out: np.ndarray):
+    """out[x] = src sampled at (x + d(x) sx, y + d(x) sy) through the cubic B-spline, clamped (bilinear
+    per-pixel sampling goes through `_row_taps` and `_gather_row`)."""
+    _h, w = src.shape
     for x in range(w):
         dd = disparity_row[x]
-        fy = y + dd * sy
-        fx = x + dd * sx
-        y0 = int(np.floor(fy))
-        x0 = int(np.floor(fx))
-        wy0, wy1, wy2, wy3 = _bspline_weights(fy - y0)
-        wx0, wx1, wx2, wx3 = _bspline_weights(fx - x0)
-        for j in range(4):
-            at[j, x] = min(max(y0 - 1 + j, 0), h - 1)
-            at[4 + j, x] = min(max(x0 - 1 + j, 0), w - 1)
-        weights[0, x] = wy0
-        weights[1, x] = wy1
-        weights[2, x] = wy2
-        weights[3, x] = wy3
-        weights[4, x] = wx0
-        weights[5, x] = wx1
-        weights[6, x] = wx2
-        weights[7, x] = wx3
-
-
-@nb.njit(cache=True, fastmath=FASTMATH, inline="always")
-def _gather_row_bspline(src: np.ndarray, at: np.ndarray, weights: np.ndarray, out: np.ndarray) -> None:
-    """out[x] = src sampled through the cubic B-spline at the taps of `_row_taps_bspline`: each tap row's four
-    columns combined, then the rows (in float64)."""
-    for x in range(out.shape[0]):
-        xa, xb, xc, xd = at[4, x], at[5, x], at[6, x], at[7, x]
-        wx0, wx1, wx2, wx3 = weights[4, x], weights[5, x], weights[6, x], weights[7, x]
-        total = 0.0
-        for j in range(4):
-            row = src[at[j, x]]
-            total += weights[j, x] * (wx0 * row[xa] + wx1 * row[xb] + wx2 * row[xc] + wx3 * row[xd])
-        out[x] = total
+        out[x] = _bspline(src, y + dd * sy, x + dd * sx)
 
 
 @nb.njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -308,9 +295,8 @@ def _cost_map(bands, shifts, d, disparity, radius, eps, out, bspline, variance, 
     box = np.empty((6, w), np.float32)
     samples = np.empty((nbands, 3, w), np.float32)
     tmp = np.empty(w, np.float32)
-    # per-pixel sampling: each channel's taps and their weights, made once per row and shared by the bands
-    taps = np.empty((3, 8 if bspline else 4, w), np.int64)
-    fractions = np.empty((3, 8 if bspline else 2, w))
+    taps = np.empty((3, 4, w), np.int64)  # per-pixel bilinear sampling: each channel's taps, shared by the bands
+    fractions = np.empty((3, 2, w))
     per_pixel = disparity.shape[0] > 0
     noisy = variance.shape[0] > 0
     uniform = np.zeros(3)
@@ -328,18 +314,15 @@ def _cost_map(bands, shifts, d, disparity, radius, eps, out, bspline, variance, 
                 for x in range(w):
                     col[c, x] -= ring[slot, c, x]
         if y < h:
-            if per_pixel:
+            if per_pixel and not bspline:
                 for c in range(3):
-                    if bspline:
-                        _row_taps_bspline(h, w, y, disparity[y], shifts[c, 0], shifts[c, 1], taps[c], fractions[c])
-                    else:
-                        _row_taps(h, w, y, disparity[y], shifts[c, 0], shifts[c, 1], taps[c], fractions[c])
+                    _row_taps(h, w, y, disparity[y], shifts[c, 0], shifts[c, 1], taps[c], fractions[c])
             for b in range(nbands):
                 for c in range(3):
-                    if per_pixel and bspline:
-                        _gather_row_bspline(bands[b, c], taps[c], fractions[c], samples[b, c])
-                    elif per_pixel:
+                    if per_pixel and not bspline:
                         _gather_row(bands[b, c], taps[c], fractions[c], samples[b, c])
+                    elif per_pixel:
+                        _sample_row_map_bspline(bands[b, c], y, disparity[y], shifts[c, 0], shifts[c, 1], samples[b, c])
                     else:
                         _sample_row_shifted(
                             bands[b, c], y, d * shifts[c, 0], d * shifts[c, 1], samples[b, c], tmp, bspline
