@@ -38,6 +38,7 @@ import numpy as np
 from mca.processing.camera import FilterAperture
 from mca.processing.cost import CostInput, cost_at
 from mca.processing.features import FeatureNoise
+from mca.processing.mpi import label_boxes
 from mca.processing.surfaces import fit_planes, interior_weights
 
 
@@ -311,16 +312,14 @@ def refine_regions(
 
 
 def _bounding_corners(labels: np.ndarray, count: int) -> np.ndarray:
-    """(count, 4, 2) float64: the (x, y) corners of each label's bounding box (zeros for an absent label)."""
+    """(count, 4, 2) float64: the (x, y) corners of each label 0..count-1's bounding box (zeros for an absent
+    label), from `mpi.label_boxes` (label k is its id k + 1 there)."""
     corners = np.zeros((count, 4, 2))
-    for axis in (0, 1):  # columns, then rows, in which each label is present
-        coords = np.arange(labels.shape[1 - axis])
-        present = np.zeros((count, coords.size), bool)
-        present[labels, coords[None, :] if axis == 0 else coords[:, None]] = True
-        seen = present.any(axis=1)
-        low = np.where(seen, present.argmax(axis=1), 0)
-        high = np.where(seen, coords.size - 1 - present[:, ::-1].argmax(axis=1), 0)
-        corners[:, :, axis] = np.stack([low, high, low, high] if axis == 0 else [low, low, high, high], axis=1)
+    for k, box in enumerate(label_boxes(labels.astype(np.int64) + 1)[:count]):
+        if box is not None:
+            rows, cols = box
+            left, right, top, bottom = cols.start, cols.stop - 1, rows.start, rows.stop - 1
+            corners[k] = [(left, top), (right, top), (left, bottom), (right, bottom)]
     return corners
 
 
