@@ -143,9 +143,9 @@ def optics_for(profile: CameraProfile, loaded: LoadedInput) -> MCAOptics | None:
 
 def pitch_note(profile: CameraProfile, loaded: LoadedInput) -> str | None:
     """A sentence for the user when the input-pixel pitch is an assumption that may be wrong: the file names no
-    camera body we know, so its pitch is the profile's, and its size is not the sensor's the profile states. That pitch is
-    right for a crop at full resolution and wrong by the scale for a downscaled frame (distances come out that
-    many times too near or too far), and nothing in the file tells the two apart. None otherwise."""
+    camera body we know, so its pitch is the profile's, and its size is not the sensor's the profile states.
+    That pitch is right for a crop at full resolution and wrong by the scale for a downscaled frame (distances
+    come out that many times too near or too far), and nothing in the file tells the two apart. None otherwise."""
     if loaded.pixel_pitch_mm is not None or profile.lens is None or profile.pixel_pitch_mm is None:
         return None
     if profile.width_px is None or profile.height_px is None:
@@ -156,10 +156,11 @@ def pitch_note(profile: CameraProfile, loaded: LoadedInput) -> str | None:
     pitch = profile.pixel_pitch_mm
     downscaled = pitch * profile.width_px / width
     return (
-        f"gives no pixel pitch (it names no camera body mca knows) and is {width}x{height} pixels, not the {profile.width_px}x{profile.height_px} of "
-        f"profile {profile.name}'s sensor: each pixel was taken as {pitch:.6g} mm (the profile's pixel_pitch_mm), "
-        f"right for a crop at full resolution. If the image is the whole frame scaled down, its pixels are "
-        f"{downscaled:.6g} mm and the distances are off: process it with a profile whose pixel_pitch_mm is that"
+        f"gives no pixel pitch (it names no camera body mca knows) and is {width}x{height} pixels, not the "
+        f"{profile.width_px}x{profile.height_px} of profile {profile.name}'s sensor: each pixel was taken as "
+        f"{pitch:.6g} mm (the profile's pixel_pitch_mm), right for a crop at full resolution. If the image is "
+        f"the whole frame scaled down, its pixels are {downscaled:.6g} mm and the distances are off: process it "
+        "with a profile whose pixel_pitch_mm is that"
     )
 
 
