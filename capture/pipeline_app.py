@@ -222,7 +222,7 @@ def _grown(box: tuple[slice, slice], shape: tuple[int, ...], margin: int) -> tup
 
 def region_boxes(labels: np.ndarray) -> list[tuple[slice, slice] | None]:
     """Bounding boxes of the regions: boxes[id - 1] bounds region id (None when it has no pixel)."""
-    from mca.processing.mpi import label_boxes
+    from mca.processing.labels import label_boxes
 
     return label_boxes(np.asarray(labels))
 

@@ -3,51 +3,11 @@
 from __future__ import annotations
 
 import cv2
-import numba as nb
 import numpy as np
 
 from mca.processing.camera import FilterAperture
 from mca.processing.disparity import warp_channels
 from mca.processing.result import MultiPlaneImage
-
-
-def label_boxes(labels: np.ndarray) -> list[tuple[slice, slice] | None]:
-    """Bounding boxes of the labels 1..max of an integer image: boxes[id - 1] = (rows, cols) slices, None for an
-    id without a pixel; 0 and negative labels are no region. The same as `scipy.ndimage.find_objects`, in one
-    pass and without importing `scipy.ndimage` (0.2 s, on the critical path of a one-file `mca process`)."""
-    labels = np.ascontiguousarray(labels)
-    if labels.ndim != 2:
-        raise ValueError(f"labels must be 2-D, got shape {labels.shape}")
-    count = int(labels.max(initial=0))
-    extents = np.empty((max(count, 0), 4), np.int64)
-    if count > 0:
-        _label_extents(labels.astype(np.int64, copy=False), extents)
-    return [
-        None if top > bottom else (slice(int(top), int(bottom) + 1), slice(int(left), int(right) + 1))
-        for top, bottom, left, right in extents
-    ]
-
-
-@nb.njit(cache=True)
-def _label_extents(labels: np.ndarray, extents: np.ndarray) -> None:
-    """extents[id - 1] = (first row, last row, first column, last column) of each id; first > last when absent."""
-    h, w = labels.shape
-    count = extents.shape[0]
-    extents[:, 0] = h
-    extents[:, 1] = -1
-    extents[:, 2] = w
-    extents[:, 3] = -1
-    for y in range(h):
-        for x in range(w):
-            k = labels[y, x] - 1
-            if 0 <= k < count:
-                if y < extents[k, 0]:
-                    extents[k, 0] = y
-                extents[k, 1] = y
-                if x < extents[k, 2]:
-                    extents[k, 2] = x
-                if x > extents[k, 3]:
-                    extents[k, 3] = x
 
 
 def all_in_focus(planes: np.ndarray, aperture: FilterAperture, disparity_px: np.ndarray) -> np.ndarray:

@@ -41,7 +41,8 @@ from mca.processing.dense import DenseDisparity, DenseParams, estimate_dense, qu
 from mca.processing.depth import depth_map_mm, region_depth
 from mca.processing.disparity import parallel_map, warp_channels
 from mca.processing.features import display_gamma
-from mca.processing.mpi import all_in_focus, label_boxes, multi_plane_images
+from mca.processing.labels import label_boxes
+from mca.processing.mpi import all_in_focus, multi_plane_images
 from mca.processing.optics import MCAOptics
 from mca.processing.refine import Refinement, RefineParams, refine_regions
 from mca.processing.result import DepthResult, NullRecorder, Recorder, Region

@@ -38,7 +38,7 @@ import numpy as np
 from mca.processing.camera import FilterAperture
 from mca.processing.cost import CostInput, cost_at
 from mca.processing.features import FeatureNoise
-from mca.processing.mpi import label_boxes
+from mca.processing.labels import label_boxes
 from mca.processing.surfaces import fit_planes, interior_weights
 
 
@@ -313,9 +313,9 @@ def refine_regions(
 
 def _bounding_corners(labels: np.ndarray, count: int) -> np.ndarray:
     """(count, 4, 2) float64: the (x, y) corners of each label 0..count-1's bounding box (zeros for an absent
-    label), from `mpi.label_boxes` (label k is its id k + 1 there)."""
+    label), from `labels.label_boxes`."""
     corners = np.zeros((count, 4, 2))
-    for k, box in enumerate(label_boxes(labels.astype(np.int64) + 1)[:count]):
+    for k, box in enumerate(label_boxes(labels, first_label=0)[:count]):
         if box is not None:
             rows, cols = box
             left, right, top, bottom = cols.start, cols.stop - 1, rows.start, rows.stop - 1

@@ -296,7 +296,7 @@ import mca.processing as package
 import pkgutil, importlib
 from mca.devices.profiles import load_profile
 from mca.processing.optics import MCAOptics
-from mca.processing.mpi import label_boxes
+from mca.processing.labels import label_boxes
 from mca.processing.pipeline import PipelineParams, load_kernels, run_pipeline
 
 modules = [importlib.import_module(f"mca.processing.{m.name}") for m in pkgutil.iter_modules(package.__path__)]
@@ -341,11 +341,11 @@ def test_load_kernels_loads_every_kernel_the_pipeline_then_takes(tmp_path, quali
 
 @pytest.mark.parametrize("dtype", [np.int32, np.uint16, np.int64, np.uint8])
 def test_label_boxes_are_scipys_find_objects(dtype):
-    """`mpi.label_boxes` (the layers' and the scene's region boxes) against `scipy.ndimage.find_objects` on random
+    """`labels.label_boxes` (the layers' and the scene's region boxes) against `scipy.ndimage.find_objects` on random
     label images: ids missing in between, 0 and negative labels that are no region, single rows and columns."""
     from scipy import ndimage
 
-    from mca.processing.mpi import label_boxes
+    from mca.processing.labels import label_boxes
 
     rng = np.random.default_rng(7)
     signed = np.issubdtype(dtype, np.signedinteger)
@@ -359,3 +359,21 @@ def test_label_boxes_are_scipys_find_objects(dtype):
     corner = np.zeros((6, 7), dtype)
     corner[5, 6] = 2
     assert label_boxes(corner) == [None, (slice(5, 6), slice(6, 7))]
+
+
+def test_label_boxes_of_zero_based_labels_are_those_of_the_labels_plus_one():
+    """`first_label=0` (superpixel indices, the refinement's cells): box k is that of label k, the same as the
+    default boxes of the labels + 1; labels below it are no region."""
+    from mca.processing.labels import label_boxes
+
+    rng = np.random.default_rng(11)
+    for _ in range(40):
+        h, w = (int(v) for v in rng.integers(1, 25, 2))
+        labels = rng.integers(-1, 7, (h, w)).astype(np.int32)
+        assert label_boxes(labels, first_label=0) == label_boxes(labels + 1)
+    assert label_boxes(np.full((3, 3), -1, np.int32), first_label=0) == []
+    assert label_boxes(np.array([[5, 3]]), first_label=3) == [
+        (slice(0, 1), slice(1, 2)),
+        None,
+        (slice(0, 1), slice(0, 1)),
+    ]

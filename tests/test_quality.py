@@ -228,7 +228,7 @@ def test_files_processed_in_this_process_keep_every_thread(tmp_path, profile, mo
 def test_mca_process_does_not_import_the_slow_scipy_modules(small_cr2, tmp_path):
     """`scipy.optimize` (0.3 s) and `scipy.ndimage` (0.2 s) are slow to import, and a one-file `mca process` would
     pay for them on its critical path: the noise fit is ours (`features.nnls_2`), and so are the region boxes of
-    the outputs (`mpi.label_boxes`). A whole run, the real pipeline, every output written, in a fresh process."""
+    the outputs (`labels.label_boxes`). A whole run, the real pipeline, every output written, in a fresh process."""
     script = (
         "import sys\n"
         "from mca.capture.cli import main\n"

@@ -161,7 +161,7 @@ def front_to_back(result: DepthResult) -> list[Any]:
 
 def layer_windows(result: DepthResult, margin_px: int = 8) -> dict[int, tuple[slice, slice]]:
     """Bounding box (rows, cols) of each region's label, padded by `margin_px`: where its layer can be opaque."""
-    from mca.processing.mpi import label_boxes
+    from mca.processing.labels import label_boxes
 
     labels = np.asarray(result.labels)
     h, w = labels.shape
