@@ -216,11 +216,22 @@ def _is_module(name: str) -> bool:
         return False
 
 
-@functools.cache
 def peer_code_digest(module: str, binary: Path | None = None) -> str:
     """What a peer's answer depends on besides its input and parameters: the source of `module` and of every
     `mca` module it reaches, numpy's and OpenCV's versions (OpenCV 5 resamples differently from 4) and, for
-    an external program, its bytes."""
+    an external program, its bytes (read again whenever its size or time changes: a program rebuilt during a
+    long evaluation is not taken for the old one)."""
+    digest = hashlib.sha256(_source_digest(module).encode())
+    if binary is not None:
+        status = Path(binary).stat()
+        digest.update(_file_digest(str(binary), status.st_size, status.st_mtime_ns).encode())
+    return digest.hexdigest()
+
+
+@functools.cache
+def _source_digest(module: str) -> str:
+    """The digest of `module`'s source and every `mca` module it reaches, with numpy's and OpenCV's versions (once
+    per process: the modules a process has imported do not change under it)."""
     import cv2
 
     digest = hashlib.sha256(f"numpy {np.__version__}; opencv {cv2.__version__}".encode())
@@ -228,9 +239,13 @@ def peer_code_digest(module: str, binary: Path | None = None) -> str:
         spec = importlib.util.find_spec(name)
         assert spec is not None and spec.origin is not None
         digest.update(name.encode() + b"\0" + Path(spec.origin).read_bytes() + b"\0")
-    if binary is not None:
-        digest.update(Path(binary).read_bytes())
     return digest.hexdigest()
+
+
+@functools.cache
+def _file_digest(path: str, size: int, mtime_ns: int) -> str:
+    """The digest of a file's bytes, once per (path, size, modification time)."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def _cache_key(entry: RenderEntry, method: str, context: _Context, params: dict[str, Any], code: str) -> str:
