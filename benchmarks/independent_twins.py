@@ -1,0 +1,174 @@
+"""Twins of a render folder made by another renderer: does the pipeline do as well on renders it did not make?
+
+    python benchmarks/independent_twins.py RENDERS OUT      # e.g. the dev set's held-out folder
+    mca evaluate --rgbd OUT --no-peers                      # beside: mca evaluate --rgbd RENDERS --no-peers
+
+For each render of RENDERS (written by `mca simulate --from-rgbd`), the same Middlebury photograph, size, pixel
+pitch, focus, near and far distances, sensor (ISO, full well, read noise, exposure), crosstalk and vignetting
+are rendered again by `tests/independent_render.py`, which shares no code with `mca simulate` (its own disc
+kernels, depth slices and compositing, hidden-background fill, resampling and noise), and written to OUT with
+its truth in the layout `mca evaluate --rgbd` reads. The twins carry no camera tags: each one's profile gives
+the render's pixel pitch and size. Only the conventions are shared: the profile's meaning, the sign of the
+disparity, the realism settings' meanings (docs/simulator.md), and the mapping of the source disparity onto
+1/Z (affine, its smallest and largest known values at the far and near distances).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import tifffile
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "tests"))
+
+from independent_render import Optics, render, srgb_to_linear  # noqa: E402
+
+READ_NOISE_ADC_DN = 1.0  # the converter's own noise, beside the sensor's read noise
+
+
+def _source(truth: dict, renders: Path) -> tuple[Path, Path, float]:
+    """The Middlebury photograph and disparity a render was made of, and the disparity's scale."""
+    source = truth["source"]
+    for base in (REPO / "..", renders, Path.cwd()):
+        image = (base / source["image"]).resolve()
+        if image.is_file():
+            return image, (base / source["disparity"]).resolve(), float(source.get("disparity_scale", 1.0))
+    raise SystemExit(f"{truth['scene']}: its source {source['image']} is not found next to the repository")
+
+
+def _farthest_fill(disparity: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """Unknown pixels (mostly hidden background) take the smallest (farthest) known disparity nearby."""
+    filled = np.where(known, disparity, np.inf)
+    while np.isinf(filled).any():
+        grown = -cv2.dilate(-filled, np.ones((5, 5), np.uint8), borderType=cv2.BORDER_REPLICATE)
+        filled = np.where(np.isinf(filled) & np.isfinite(grown), grown, filled)
+    return filled
+
+
+def _resized(image: np.ndarray, disparity: np.ndarray, size: tuple[int, int]):
+    """Photograph and disparity at `size` (width, height), the disparity's values still in source px: image cubic
+    (area when shrinking), the disparity bilinear except across steps (nearest there); a pixel is known when
+    every source pixel it used is."""
+    known = disparity > 0
+    shrink = size[0] < 0.9 * disparity.shape[1]
+    linear = cv2.resize(image, size, interpolation=cv2.INTER_AREA if shrink else cv2.INTER_CUBIC).clip(0.0, 1.0)
+    filled = _farthest_fill(disparity, known)
+    smooth = cv2.resize(filled, size, interpolation=cv2.INTER_LINEAR)
+    nearest = cv2.resize(filled, size, interpolation=cv2.INTER_NEAREST)
+    resized = np.where(np.abs(smooth - nearest) < 0.5, smooth, nearest)
+    all_known = cv2.resize(known.astype(np.float32), size, interpolation=cv2.INTER_LINEAR) > 0.999
+    return linear, resized, all_known & (cv2.resize(known.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0)
+
+
+def _sensor(light: np.ndarray, truth: dict, pitch_mm: float, sensor_mm: float, seed: int) -> np.ndarray:
+    """The render's sensor (docs/simulator.md's meanings): vignetting, crosstalk (out_c = sum_f M[c][f] in_f),
+    exposure (the share of white - black a white surface reaches on the axis), Poisson photons, Gaussian read
+    noise, 14-bit levels; written as (DN - black) / (white - black) of 65535."""
+    realism = truth.get("realism") or truth["draw"]
+    sensor = realism["sensor"]
+    height, width, _ = light.shape
+    rows, cols = np.mgrid[0:height, 0:width].astype(np.float64)
+    radius2_px = (cols - (width - 1) / 2.0) ** 2 + (rows - (height - 1) / 2.0) ** 2
+    x = light.astype(np.float64)
+    if realism.get("vignetting") == "cos4":
+        x *= ((1.0 / (1.0 + radius2_px * pitch_mm**2 / sensor_mm**2)) ** 2)[..., None]
+    elif realism.get("vignetting") == "poly":
+        k2, k4 = realism["vignetting_k"]
+        r2 = radius2_px / (((width - 1) / 2.0) ** 2 + ((height - 1) / 2.0) ** 2)
+        x *= (1.0 + k2 * r2 + k4 * r2**2)[..., None]
+    if realism.get("crosstalk") is not None:
+        x = np.einsum("hwf,cf->hwc", x, np.asarray(realism["crosstalk"], np.float64))
+    black, white = int(sensor["black_level"]), int(sensor["white_level"])
+    full_well_e = float(sensor["full_well_e"]) * 100.0 / float(sensor["iso"])
+    mean_e = np.clip(x, 0.0, None) * float(sensor["exposure"]) * full_well_e
+    rng = np.random.default_rng(seed)
+    if sensor.get("noise", True):
+        electrons = rng.poisson(mean_e).astype(np.float64) + rng.normal(0.0, float(sensor["read_noise_e"]), x.shape)
+        dn = black + electrons * (white - black) / full_well_e + rng.normal(0.0, READ_NOISE_ADC_DN, x.shape)
+    else:
+        dn = black + mean_e * (white - black) / full_well_e
+    dn = np.minimum(np.clip(np.rint(dn), 0, 2 ** int(sensor["bits"]) - 1), white)
+    return np.clip(np.rint((dn - black) / (white - black) * 65535.0), 0, 65535).astype(np.uint16)  # below black: 0
+
+
+def _profile_text(original: str, name: str, pitch_mm: float, size: tuple[int, int]) -> str:
+    """The render's profile with this twin's name, pitch and size (no note about an assumed pitch)."""
+    lines = []
+    for line in original.splitlines():
+        key = line.split("=")[0].strip() if "=" in line and not line.lstrip().startswith("#") else ""
+        if key == "name":
+            line = f'name = "{name}"'
+        elif key == "pixel_pitch_mm":
+            line = f"pixel_pitch_mm = {pitch_mm!r}"
+        elif key == "width_px":
+            line = f"width_px = {size[0]}"
+        elif key == "height_px":
+            line = f"height_px = {size[1]}"
+        lines.append(line)
+    return "\n".join(lines) + "\n"
+
+
+def twin(truth_path: Path, renders: Path, out: Path, step_px: float) -> str:
+    truth = json.loads(truth_path.read_text(encoding="utf-8"))
+    image_path, disparity_path, scale = _source(truth, renders)
+    optics_info = truth["optics"]
+    size = (int(optics_info["width_px"]), int(optics_info["height_px"]))
+    pitch_mm = float(optics_info["pixel_pitch_mm"])
+    photo = srgb_to_linear(cv2.imread(str(image_path), cv2.IMREAD_COLOR)[..., ::-1])
+    source = cv2.imread(str(disparity_path), cv2.IMREAD_UNCHANGED).astype(np.float64) / scale
+    low, high = float(source[source > 0].min()), float(source[source > 0].max())
+    linear, disparity, known = _resized(photo, source, size)
+    near_mm, far_mm = float(truth["near_mm"]), float(truth["far_mm"])
+    inverse = 1.0 / far_mm + (disparity - low) * (1.0 / near_mm - 1.0 / far_mm) / (high - low)
+    profile_path = truth_path.parent / truth["files"]["profile"]
+    optics = Optics.from_profile(profile_path, float(truth["focus_distance_mm"]), pitch_mm)
+    if abs(optics.sensor_mm - float(optics_info["sensor_distance_mm"])) > 1e-6:
+        raise SystemExit(f"{truth['scene']}: its focus and sensor distance disagree with the thin lens")
+    red_blue = optics.red_blue_px(1.0 / inverse)
+    started = time.perf_counter()
+    light = render(linear, red_blue.astype(np.float32), optics, step_px)
+    seconds = time.perf_counter() - started
+    name = f"{truth['scene']}-twin"
+    (out / "truth").mkdir(parents=True, exist_ok=True)
+    tifffile.imwrite(out / f"{name}.tiff", _sensor(light, truth, pitch_mm, optics.sensor_mm, int(truth["seed"]) + 1))
+    tifffile.imwrite(out / "truth" / f"{name}.disparity.tiff", np.where(known, red_blue, np.nan).astype(np.float32))
+    tifffile.imwrite(out / "truth" / f"{name}.distance.tiff", np.where(known, 1.0 / inverse, np.nan).astype(np.float32))
+    text = _profile_text(profile_path.read_text(encoding="utf-8"), f"{name}-profile", pitch_mm, size)
+    (out / "truth" / f"{name}.profile.toml").write_text(text, encoding="utf-8")
+    twin_truth = dict(truth, scene=name, image=f"{name}.tiff", format="tiff", profile=f"{name}-profile")
+    twin_truth["renderer"] = {"by": "tests/independent_render.py", "twin_of": truth["scene"], "step_px": step_px}
+    twin_truth["valid_fraction"] = float(known.mean())
+    twin_truth["files"] = {
+        "distance_mm": f"{name}.distance.tiff",
+        "disparity_px": f"{name}.disparity.tiff",
+        "profile": f"{name}.profile.toml",
+    }
+    (out / "truth" / f"{name}.json").write_text(json.dumps(twin_truth, indent=2), encoding="utf-8")
+    return (
+        f"{name}: {size[0]}x{size[1]}, {red_blue[known].min():+.2f}..{red_blue[known].max():+.2f} px, {seconds:.0f} s"
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("renders", type=Path, help="a folder written by mca simulate --from-rgbd (with truth/)")
+    parser.add_argument("out", type=Path, help="where the twins and their truth/ go")
+    parser.add_argument("--step-px", type=float, default=0.05, help="disparity between depth slices")
+    args = parser.parse_args()
+    truths = sorted(args.renders.rglob("truth/*.json"))
+    truths = [t for t in truths if json.loads(t.read_text(encoding="utf-8")).get("kind") == "rgbd"]
+    if not truths:
+        raise SystemExit(f"{args.renders}: no RGB-D render (truth/*.json) to twin")
+    for index, path in enumerate(truths, 1):
+        print(f"[{index}/{len(truths)}] {twin(path, args.renders, args.out, args.step_px)}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
