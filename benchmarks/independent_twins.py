@@ -3,14 +3,14 @@
     python benchmarks/independent_twins.py RENDERS OUT      # e.g. the dev set's held-out folder
     mca evaluate --rgbd OUT --no-peers                      # beside: mca evaluate --rgbd RENDERS --no-peers
 
-For each render of RENDERS (written by `mca simulate --from-rgbd`), the same Middlebury photograph, size, pixel
-pitch, focus, near and far distances, sensor (ISO, full well, read noise, exposure), crosstalk and vignetting
-are rendered again by `tests/independent_render.py`, which shares no code with `mca simulate` (its own disc
-kernels, depth slices and compositing, hidden-background fill, resampling and noise), and written to OUT with
-its truth in the layout `mca evaluate --rgbd` reads. The twins carry no camera tags: each one's profile gives
-the render's pixel pitch and size. Only the conventions are shared: the profile's meaning, the sign of the
-disparity, the realism settings' meanings (docs/simulator.md), and the mapping of the source disparity onto
-1/Z (affine, its smallest and largest known values at the far and near distances).
+For each render of RENDERS (written by `mca simulate --from-rgbd`), the same scene is rendered again by
+`tests/independent_render.py`, which shares no code with `mca simulate` (its own disc kernels, depth slices and
+compositing, hidden-background fill, resampling and noise), and written to OUT with its truth in the layout
+`mca evaluate --rgbd` reads. What the twin takes from the render: the Middlebury photograph (resized here), the
+true distance of every pixel (`truth/<name>.distance.tiff`; its unknown pixels filled here with the farthest
+neighbour), the size, pixel pitch and focus, and the sensor's settings (ISO, full well, read noise, exposure,
+crosstalk, vignetting, with docs/simulator.md's meanings). Its disparities come from its own optics. The twins
+carry no camera tags: each one's profile gives the render's pixel pitch and size.
 """
 
 from __future__ import annotations
@@ -33,38 +33,23 @@ from independent_render import Optics, render, srgb_to_linear  # noqa: E402
 READ_NOISE_ADC_DN = 1.0  # the converter's own noise, beside the sensor's read noise
 
 
-def _source(truth: dict, renders: Path) -> tuple[Path, Path, float]:
-    """The Middlebury photograph and disparity a render was made of, and the disparity's scale."""
-    source = truth["source"]
+def _photograph(truth: dict, renders: Path) -> Path:
+    """The Middlebury photograph a render was made of."""
     for base in (REPO / "..", renders, Path.cwd()):
-        image = (base / source["image"]).resolve()
+        image = (base / truth["source"]["image"]).resolve()
         if image.is_file():
-            return image, (base / source["disparity"]).resolve(), float(source.get("disparity_scale", 1.0))
-    raise SystemExit(f"{truth['scene']}: its source {source['image']} is not found next to the repository")
+            return image
+    raise SystemExit(f"{truth['scene']}: its source {truth['source']['image']} is not found next to the repository")
 
 
-def _farthest_fill(disparity: np.ndarray, known: np.ndarray) -> np.ndarray:
-    """Unknown pixels (mostly hidden background) take the smallest (farthest) known disparity nearby."""
-    filled = np.where(known, disparity, np.inf)
+def _farthest_fill(inverse_mm: np.ndarray) -> np.ndarray:
+    """Unknown (NaN) pixels, mostly hidden background, take the smallest inverse distance (the farthest point)
+    among their known neighbours, growing inwards until every pixel has one."""
+    filled = np.where(np.isfinite(inverse_mm), inverse_mm, np.inf)
     while np.isinf(filled).any():
         grown = -cv2.dilate(-filled, np.ones((5, 5), np.uint8), borderType=cv2.BORDER_REPLICATE)
         filled = np.where(np.isinf(filled) & np.isfinite(grown), grown, filled)
     return filled
-
-
-def _resized(image: np.ndarray, disparity: np.ndarray, size: tuple[int, int]):
-    """Photograph and disparity at `size` (width, height), the disparity's values still in source px: image cubic
-    (area when shrinking), the disparity bilinear except across steps (nearest there); a pixel is known when
-    every source pixel it used is."""
-    known = disparity > 0
-    shrink = size[0] < 0.9 * disparity.shape[1]
-    linear = cv2.resize(image, size, interpolation=cv2.INTER_AREA if shrink else cv2.INTER_CUBIC).clip(0.0, 1.0)
-    filled = _farthest_fill(disparity, known)
-    smooth = cv2.resize(filled, size, interpolation=cv2.INTER_LINEAR)
-    nearest = cv2.resize(filled, size, interpolation=cv2.INTER_NEAREST)
-    resized = np.where(np.abs(smooth - nearest) < 0.5, smooth, nearest)
-    all_known = cv2.resize(known.astype(np.float32), size, interpolation=cv2.INTER_LINEAR) > 0.999
-    return linear, resized, all_known & (cv2.resize(known.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0)
 
 
 def _sensor(light: np.ndarray, truth: dict, pitch_mm: float, sensor_mm: float, seed: int) -> np.ndarray:
@@ -117,16 +102,18 @@ def _profile_text(original: str, name: str, pitch_mm: float, size: tuple[int, in
 
 def twin(truth_path: Path, renders: Path, out: Path, step_px: float) -> str:
     truth = json.loads(truth_path.read_text(encoding="utf-8"))
-    image_path, disparity_path, scale = _source(truth, renders)
+    image_path = _photograph(truth, renders)
     optics_info = truth["optics"]
     size = (int(optics_info["width_px"]), int(optics_info["height_px"]))
     pitch_mm = float(optics_info["pixel_pitch_mm"])
     photo = srgb_to_linear(cv2.imread(str(image_path), cv2.IMREAD_COLOR)[..., ::-1])
-    source = cv2.imread(str(disparity_path), cv2.IMREAD_UNCHANGED).astype(np.float64) / scale
-    low, high = float(source[source > 0].min()), float(source[source > 0].max())
-    linear, disparity, known = _resized(photo, source, size)
-    near_mm, far_mm = float(truth["near_mm"]), float(truth["far_mm"])
-    inverse = 1.0 / far_mm + (disparity - low) * (1.0 / near_mm - 1.0 / far_mm) / (high - low)
+    shrink = size[0] < 0.9 * photo.shape[1]
+    linear = cv2.resize(photo, size, interpolation=cv2.INTER_AREA if shrink else cv2.INTER_CUBIC).clip(0.0, 1.0)
+    distance_mm = tifffile.imread(truth_path.parent / truth["files"]["distance_mm"]).astype(np.float64)
+    if distance_mm.shape != size[::-1]:
+        raise SystemExit(f"{truth['scene']}: its distance map is {distance_mm.shape}, not {size[::-1]}")
+    known = np.isfinite(distance_mm)
+    inverse = _farthest_fill(1.0 / distance_mm)
     profile_path = truth_path.parent / truth["files"]["profile"]
     optics = Optics.from_profile(profile_path, float(truth["focus_distance_mm"]), pitch_mm)
     if abs(optics.sensor_mm - float(optics_info["sensor_distance_mm"])) > 1e-6:

@@ -153,3 +153,39 @@ def test_the_independent_renderer_imports_nothing_of_mca():
     names = [alias.name for node in ast.walk(tree) if isinstance(node, ast.Import) for alias in node.names]
     names += [node.module or "" for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)]
     assert names and not [n for n in names if n == "mca" or n.startswith("mca.")]
+
+
+def test_twins_of_a_render_folder_score_as_the_renders_do(tmp_path):
+    """`benchmarks/independent_twins.py` on a small `mca simulate --from-rgbd-tree` render of Books: the twin's
+    red-blue disparity, from the render's true distances through the independent optics, is the simulator's
+    truth (eqs. 2 and 11 agree), and `mca evaluate --rgbd` scores the twin as it scores the original."""
+    import importlib.util
+    import json
+
+    from typer.testing import CliRunner
+
+    from mca.capture.cli import app
+
+    if not (MIDDLEBURY / "Books").is_dir():
+        pytest.skip(f"the Middlebury scenes are not at {MIDDLEBURY} (kept out of the repository)")
+    renders, twins = tmp_path / "renders", tmp_path / "twins"
+    arguments = ["--from-rgbd-tree", str(MIDDLEBURY), "--scenes", "Books", "--seeds", "3", "--width", "480"]
+    result = CliRunner().invoke(app, ["simulate", *arguments, "--out", str(renders)])
+    assert result.exit_code == 0, result.output
+    spec = importlib.util.spec_from_file_location("independent_twins", REPO / "benchmarks" / "independent_twins.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    (truth_path,) = sorted(renders.rglob("truth/*.json"))
+    module.twin(truth_path, renders, twins, 0.05)
+    ours = tifffile.imread(truth_path.parent / "Books-s3.disparity.tiff")
+    theirs = tifffile.imread(twins / "truth" / "Books-s3-twin.disparity.tiff")
+    assert np.array_equal(np.isfinite(ours), np.isfinite(theirs))
+    assert np.nanmax(np.abs(ours - theirs)) < 1e-3
+    report = tmp_path / "report.json"
+    result = CliRunner().invoke(app, ["evaluate", "--rgbd", str(tmp_path), "--no-peers", "--json-file", str(report)])
+    assert result.exit_code == 0, result.output
+    scored = json.loads(report.read_text(encoding="utf-8"))["renders"]
+    bad = {row["name"]: row["metrics"]["ours"]["bad_1"] for row in scored}
+    assert set(bad) == {"Books-s3", "Books-s3-twin"}
+    assert max(bad.values()) <= 0.05, bad
