@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -105,20 +105,47 @@ def disc_kernel(centre_px: tuple[float, float], radius_px: float, sigma_px: floa
     return (kernel / kernel.sum()).astype(np.float32)
 
 
-def render(linear: np.ndarray, red_blue_px: np.ndarray, optics: Optics, step_px: float = 0.05) -> np.ndarray:
+def render(
+    linear: np.ndarray,
+    red_blue_px: np.ndarray,
+    optics: Optics,
+    step_px: float = 0.05,
+    supersample: int = 1,
+    sigma_px: float = ANTI_ALIAS_SIGMA_PX,
+    same_surface_px: float = 1.0,
+) -> np.ndarray:
     """(H, W, 3) linear scene radiance and its (H, W) red-blue disparity (finite everywhere) -> what each
     channel's pixels receive through its filter, (H, W, 3) float32.
 
     The scene is cut into slices `step_px` of disparity apart, composited far to near with "over", each slice's
     premultiplied colour and coverage convolved with each channel's shifted disc. A slice reaches on under the
     nearer pixels as far as the channels' shifts and discs can show them: there its colour is that of the
-    nearest pixel at least 1 px farther (the background an occluder hides)."""
+    nearest pixel at least `same_surface_px` farther (the background an occluder hides). `sigma_px`: the lens' and sensor's
+    own blur in focus (a Gaussian).
+
+    Each scene pixel is a point, and a point's image on a grid of pixels is pulled toward the pixel centres when
+    the kernel is narrow (its centroid 0.143 px off the grid where it should be 0.150, at sigma 0.43 px): at small
+    disparities the image moves less than its truth says. `supersample` n renders on a grid n times finer (the
+    scene enlarged with cubic interpolation, each pixel 1/n as wide) and averages n x n blocks, which takes most
+    of that error out at n^2 times the work (docs/evaluation.md, thirteenth stop)."""
+    if supersample > 1:
+        h, w = red_blue_px.shape
+        size = (w * supersample, h * supersample)
+        fine = render(
+            np.clip(cv2.resize(linear.astype(np.float32), size, interpolation=cv2.INTER_CUBIC), 0.0, None),
+            cv2.resize(red_blue_px.astype(np.float32), size, interpolation=cv2.INTER_NEAREST) * supersample,
+            replace(optics, pitch_mm=optics.pitch_mm / supersample),
+            step_px * supersample,
+            sigma_px=sigma_px * supersample,
+            same_surface_px=same_surface_px * supersample,
+        )
+        return cv2.resize(fine, (w, h), interpolation=cv2.INTER_AREA)
     h, w = red_blue_px.shape
     low, high = float(red_blue_px.min()), float(red_blue_px.max())
     largest = max(abs(low), abs(high))
     blur = optics.disc_radius_px(largest)
     reach_all = 0.5 * (high - low) + blur + 3.0
-    pad = int(math.ceil(reach_all + 0.5 * largest + blur + 4.0 * ANTI_ALIAS_SIGMA_PX + 4.0))
+    pad = int(math.ceil(reach_all + 0.5 * largest + blur + 4.0 * sigma_px + 4.0))
     scene = cv2.copyMakeBorder(linear.astype(np.float32), pad, pad, pad, pad, cv2.BORDER_REFLECT_101)
     depth = cv2.copyMakeBorder(red_blue_px.astype(np.float32), pad, pad, pad, pad, cv2.BORDER_REFLECT_101)
     level = np.rint((depth - low) / step_px).astype(np.int32)
@@ -127,8 +154,7 @@ def render(linear: np.ndarray, red_blue_px: np.ndarray, optics: Optics, step_px:
         d = low + k * step_px
         ys, xs = np.nonzero(level == k)
         kernels = [
-            disc_kernel(optics.shift_px(c, d), optics.disc_radius_px(d), ANTI_ALIAS_SIGMA_PX)[::-1, ::-1].copy()
-            for c in CHANNELS
+            disc_kernel(optics.shift_px(c, d), optics.disc_radius_px(d), sigma_px)[::-1, ::-1].copy() for c in CHANNELS
         ]
         reach = 0.5 * (d - low) + blur + 3.0
         margin = int(math.ceil(reach)) + max(k_.shape[0] for k_ in kernels) // 2 + 1
@@ -140,7 +166,7 @@ def render(linear: np.ndarray, red_blue_px: np.ndarray, optics: Optics, step_px:
         under = (distance <= reach) & (local < d - step_px / 2)
         colour = scene[y0:y1, x0:x1]
         if under.any():
-            behind = depth >= d - 1.0
+            behind = depth >= d - same_surface_px
             if not behind.all():
                 _, (iy, ix) = ndimage.distance_transform_edt(~behind[y0:y1, x0:x1], return_indices=True)
                 colour = colour[iy, ix]
