@@ -14,7 +14,7 @@ def label_boxes(labels: np.ndarray, first_label: int = 1) -> list[tuple[slice, s
     labels = np.ascontiguousarray(labels)
     if labels.ndim != 2:
         raise ValueError(f"labels must be 2-D, got shape {labels.shape}")
-    count = int(labels.max(initial=first_label - 1)) - first_label + 1
+    count = (int(labels.max()) - first_label + 1) if labels.size else 0  # not max(initial=-1): unsigned labels
     extents = np.empty((max(count, 0), 4), np.int64)
     if count > 0:
         _label_extents(labels.astype(np.int64, copy=False), int(first_label), extents)

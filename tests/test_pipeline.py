@@ -372,6 +372,12 @@ def test_label_boxes_of_zero_based_labels_are_those_of_the_labels_plus_one():
         labels = rng.integers(-1, 7, (h, w)).astype(np.int32)
         assert label_boxes(labels, first_label=0) == label_boxes(labels + 1)
     assert label_boxes(np.full((3, 3), -1, np.int32), first_label=0) == []
+    assert label_boxes(np.array([[0, 2]], np.uint16), first_label=0) == [
+        (slice(0, 1), slice(0, 1)),
+        None,
+        (slice(0, 1), slice(1, 2)),
+    ]
+    assert label_boxes(np.zeros((0, 3), np.uint8), first_label=0) == []
     assert label_boxes(np.array([[5, 3]]), first_label=3) == [
         (slice(0, 1), slice(1, 2)),
         None,
