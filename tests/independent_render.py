@@ -124,7 +124,7 @@ def render(
     own blur in focus (a Gaussian).
 
     Each scene pixel is a point, and a point's image on a grid of pixels is pulled toward the pixel centres when
-    the kernel is narrow (its centroid 0.143 px off the grid where it should be 0.150, at sigma 0.43 px): at small
+    the kernel is narrow (its centroid 0.127 px off the grid where it should be 0.150, at sigma 0.35 px): at small
     disparities the image moves less than its truth says. `supersample` n renders on a grid n times finer (the
     scene enlarged with cubic interpolation, each pixel 1/n as wide) and averages n x n blocks, which takes most
     of that error out at n^2 times the work (docs/evaluation.md, thirteenth stop)."""
