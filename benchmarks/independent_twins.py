@@ -28,9 +28,9 @@ import tifffile
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))
 
-from independent_render import Optics, render, srgb_to_linear  # noqa: E402
+from independent_render import Optics, expose, fill_farthest, profile_text, render, srgb_to_linear  # noqa: E402
 
-READ_NOISE_ADC_DN = 1.0  # the converter's own noise, beside the sensor's read noise
+ADC_NOISE_DN = 1.0  # the converter's own noise, beside the sensor's read noise
 
 
 def _photograph(truth: dict, renders: Path) -> Path:
@@ -40,16 +40,6 @@ def _photograph(truth: dict, renders: Path) -> Path:
         if image.is_file():
             return image
     raise SystemExit(f"{truth['scene']}: its source {truth['source']['image']} is not found next to the repository")
-
-
-def _farthest_fill(inverse_mm: np.ndarray) -> np.ndarray:
-    """Unknown (NaN) pixels, mostly hidden background, take the smallest inverse distance (the farthest point)
-    among their known neighbours, growing inwards until every pixel has one."""
-    filled = np.where(np.isfinite(inverse_mm), inverse_mm, np.inf)
-    while np.isinf(filled).any():
-        grown = -cv2.dilate(-filled, np.ones((5, 5), np.uint8), borderType=cv2.BORDER_REPLICATE)
-        filled = np.where(np.isinf(filled) & np.isfinite(grown), grown, filled)
-    return filled
 
 
 def _sensor(light: np.ndarray, truth: dict, pitch_mm: float, sensor_mm: float, seed: int) -> np.ndarray:
@@ -70,34 +60,19 @@ def _sensor(light: np.ndarray, truth: dict, pitch_mm: float, sensor_mm: float, s
         x *= (1.0 + k2 * r2 + k4 * r2**2)[..., None]
     if realism.get("crosstalk") is not None:
         x = np.einsum("hwf,cf->hwc", x, np.asarray(realism["crosstalk"], np.float64))
-    black, white = int(sensor["black_level"]), int(sensor["white_level"])
-    full_well_e = float(sensor["full_well_e"]) * 100.0 / float(sensor["iso"])
-    mean_e = np.clip(x, 0.0, None) * float(sensor["exposure"]) * full_well_e
-    rng = np.random.default_rng(seed)
-    if sensor.get("noise", True):
-        electrons = rng.poisson(mean_e).astype(np.float64) + rng.normal(0.0, float(sensor["read_noise_e"]), x.shape)
-        dn = black + electrons * (white - black) / full_well_e + rng.normal(0.0, READ_NOISE_ADC_DN, x.shape)
-    else:
-        dn = black + mean_e * (white - black) / full_well_e
-    dn = np.minimum(np.clip(np.rint(dn), 0, 2 ** int(sensor["bits"]) - 1), white)
-    return np.clip(np.rint((dn - black) / (white - black) * 65535.0), 0, 65535).astype(np.uint16)  # below black: 0
-
-
-def _profile_text(original: str, name: str, pitch_mm: float, size: tuple[int, int]) -> str:
-    """The render's profile with this twin's name, pitch and size (no note about an assumed pitch)."""
-    lines = []
-    for line in original.splitlines():
-        key = line.split("=")[0].strip() if "=" in line and not line.lstrip().startswith("#") else ""
-        if key == "name":
-            line = f'name = "{name}"'
-        elif key == "pixel_pitch_mm":
-            line = f"pixel_pitch_mm = {pitch_mm!r}"
-        elif key == "width_px":
-            line = f"width_px = {size[0]}"
-        elif key == "height_px":
-            line = f"height_px = {size[1]}"
-        lines.append(line)
-    return "\n".join(lines) + "\n"
+    return expose(
+        x,
+        float(sensor["iso"]),
+        float(sensor["exposure"]),
+        seed,
+        black_dn=int(sensor["black_level"]),
+        white_dn=int(sensor["white_level"]),
+        bits=int(sensor["bits"]),
+        full_well_e_iso100=float(sensor["full_well_e"]),
+        read_noise_e=float(sensor["read_noise_e"]),
+        adc_noise_dn=ADC_NOISE_DN,
+        noise=bool(sensor.get("noise", True)),
+    )
 
 
 def twin(truth_path: Path, renders: Path, out: Path, step_px: float, supersample: int = 2) -> str:
@@ -113,7 +88,7 @@ def twin(truth_path: Path, renders: Path, out: Path, step_px: float, supersample
     if distance_mm.shape != size[::-1]:
         raise SystemExit(f"{truth['scene']}: its distance map is {distance_mm.shape}, not {size[::-1]}")
     known = np.isfinite(distance_mm)
-    inverse = _farthest_fill(1.0 / distance_mm)
+    inverse = fill_farthest(1.0 / distance_mm)
     profile_path = truth_path.parent / truth["files"]["profile"]
     optics = Optics.from_profile(profile_path, float(truth["focus_distance_mm"]), pitch_mm)
     if abs(optics.sensor_mm - float(optics_info["sensor_distance_mm"])) > 1e-6:
@@ -127,7 +102,7 @@ def twin(truth_path: Path, renders: Path, out: Path, step_px: float, supersample
     tifffile.imwrite(out / f"{name}.tiff", _sensor(light, truth, pitch_mm, optics.sensor_mm, int(truth["seed"]) + 1))
     tifffile.imwrite(out / "truth" / f"{name}.disparity.tiff", np.where(known, red_blue, np.nan).astype(np.float32))
     tifffile.imwrite(out / "truth" / f"{name}.distance.tiff", np.where(known, 1.0 / inverse, np.nan).astype(np.float32))
-    text = _profile_text(profile_path.read_text(encoding="utf-8"), f"{name}-profile", pitch_mm, size)
+    text = profile_text(profile_path.read_text(encoding="utf-8"), f"{name}-profile", pitch_mm, size)
     (out / "truth" / f"{name}.profile.toml").write_text(text, encoding="utf-8")
     twin_truth = dict(truth, scene=name, image=f"{name}.tiff", format="tiff", profile=f"{name}-profile")
     twin_truth["renderer"] = {

@@ -180,12 +180,63 @@ def render(
     return out[pad : pad + h, pad : pad + w]
 
 
-def expose(image: np.ndarray, iso: float, white_fraction: float, seed: int) -> np.ndarray:
-    """Linear light -> a 16-bit linear TIFF's samples ((DN - black) / (white - black) of 65535) of a 14-bit
-    sensor: linear 1 reaches `white_fraction` of the white level; Poisson photon noise, Gaussian read noise."""
-    rng = np.random.default_rng(seed)
-    full_well_e = FULL_WELL_E_ISO100 * 100.0 / iso
-    electrons = rng.poisson(np.clip(image, 0.0, None) * white_fraction * full_well_e).astype(np.float64)
-    electrons += rng.normal(0.0, READ_NOISE_E, electrons.shape)
-    dn = np.clip(np.rint(BLACK_DN + electrons * (WHITE_DN - BLACK_DN) / full_well_e), BLACK_DN, WHITE_DN)
-    return np.rint((dn - BLACK_DN) / (WHITE_DN - BLACK_DN) * 65535.0).astype(np.uint16)
+def expose(
+    image: np.ndarray,
+    iso: float,
+    white_fraction: float,
+    seed: int,
+    *,
+    black_dn: int = BLACK_DN,
+    white_dn: int = WHITE_DN,
+    bits: int = 14,
+    full_well_e_iso100: float = FULL_WELL_E_ISO100,
+    read_noise_e: float = READ_NOISE_E,
+    adc_noise_dn: float = 0.0,
+    noise: bool = True,
+) -> np.ndarray:
+    """Linear light -> a 16-bit linear TIFF's samples ((DN - black) / (white - black) of 65535) of a sensor of
+    `bits` bits: linear 1 reaches `white_fraction` of white - black, the full well is `full_well_e_iso100` x
+    100 / `iso` electrons; Poisson photon noise, Gaussian read noise (electrons) and converter noise (DN), none
+    without `noise`. Samples below the black level are 0."""
+    full_well_e = full_well_e_iso100 * 100.0 / iso
+    mean_e = np.clip(image, 0.0, None) * white_fraction * full_well_e
+    if noise:
+        rng = np.random.default_rng(seed)
+        electrons = rng.poisson(mean_e).astype(np.float64) + rng.normal(0.0, read_noise_e, mean_e.shape)
+        dn = black_dn + electrons * (white_dn - black_dn) / full_well_e
+        if adc_noise_dn > 0:
+            dn = dn + rng.normal(0.0, adc_noise_dn, mean_e.shape)
+    else:
+        dn = black_dn + mean_e * (white_dn - black_dn) / full_well_e
+    dn = np.clip(np.rint(dn), black_dn, min(white_dn, 2**bits - 1))
+    return np.rint((dn - black_dn) / (white_dn - black_dn) * 65535.0).astype(np.uint16)
+
+
+def fill_farthest(inverse_mm: np.ndarray) -> np.ndarray:
+    """Unknown (NaN) pixels of an inverse-distance map, mostly hidden background, take the smallest inverse distance
+    (the farthest point) among their known 5x5 neighbours, growing inwards until every pixel has one."""
+    filled = np.where(np.isfinite(inverse_mm), inverse_mm, np.inf)
+    while np.isinf(filled).any():
+        grown = -cv2.dilate(-filled, np.ones((5, 5), np.uint8), borderType=cv2.BORDER_REPLICATE)
+        filled = np.where(np.isinf(filled) & np.isfinite(grown), grown, filled)
+    return filled
+
+
+def profile_text(
+    original: str, name: str, pitch_mm: float, size: tuple[int, int], sensor_mm: float | None = None
+) -> str:
+    """A profile TOML's text with another name, pixel pitch and sensor size (width, height) in px, and the lens'
+    sensor distance when `sensor_mm` is given (a render's profile: `mca process` then needs no assumed pitch)."""
+    values = {
+        "name": f'"{name}"',
+        "pixel_pitch_mm": repr(pitch_mm),
+        "width_px": str(size[0]),
+        "height_px": str(size[1]),
+    }
+    if sensor_mm is not None:
+        values["sensor_distance_mm"] = repr(sensor_mm)
+    lines = []
+    for line in original.splitlines():
+        key = line.split("=")[0].strip() if "=" in line and not line.lstrip().startswith("#") else ""
+        lines.append(f"{key} = {values[key]}" if key in values else line)
+    return "\n".join(lines) + "\n"

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 import tifffile
-from independent_render import Optics, expose, render, srgb_to_linear
+from independent_render import Optics, expose, fill_farthest, profile_text, render, srgb_to_linear
 from scipy import ndimage
 
 REPO = Path(__file__).resolve().parents[1]
@@ -77,10 +77,7 @@ def _books_render(tmp_path: Path, focus_mm: float, near_mm: float, far_mm: float
     known = source > 0
     low, high = float(source[known].min()), float(source[known].max())
     inverse = 1.0 / far_mm + (source - low) * (1.0 / near_mm - 1.0 / far_mm) / (high - low)
-    filled = np.where(known, inverse, np.nan)
-    while np.isnan(filled).any():  # unknown (hidden) pixels take the farthest known neighbour, for rendering only
-        grown = _farthest_neighbour(filled)
-        filled = np.where(np.isnan(filled) & np.isfinite(grown), grown, filled)
+    filled = fill_farthest(np.where(known, inverse, np.nan))  # the hidden pixels, for rendering only
     pitch_mm = SENSOR_WIDTH_MM / FULL_WIDTH_PX
     optics = Optics.from_profile(PROFILE, focus_mm, pitch_mm)
     render_px = optics.red_blue_px(1.0 / filled[rows, cols]).astype(np.float32)
@@ -89,21 +86,12 @@ def _books_render(tmp_path: Path, focus_mm: float, near_mm: float, far_mm: float
     path = tmp_path / "books.tiff"
     tifffile.imwrite(path, expose(linear, iso, 0.7, seed), photometric="rgb")
     height, width = render_px.shape
-    text = PROFILE.read_text(encoding="utf-8")
-    text = text.replace('name = "paper-70d"', 'name = "independent-books"')
-    text = text.replace("pixel_pitch_mm = 0.004109", f"pixel_pitch_mm = {pitch_mm!r}")
-    text = text.replace("width_px = 5472", f"width_px = {width}").replace("height_px = 3648", f"height_px = {height}")
-    text = text.replace("sensor_distance_mm = 52.63", f"sensor_distance_mm = {optics.sensor_mm!r}")
+    text = profile_text(
+        PROFILE.read_text(encoding="utf-8"), "independent-books", pitch_mm, (width, height), optics.sensor_mm
+    )
     profile_path = tmp_path / "books.toml"
     profile_path.write_text(text, encoding="utf-8")
     return path, profile_path, truth_px, optics
-
-
-def _farthest_neighbour(inverse_mm: np.ndarray) -> np.ndarray:
-    """The smallest inverse distance (the farthest point) among each pixel's known 5x5 neighbours, inf where
-    none is known."""
-    negated = -np.nan_to_num(inverse_mm, nan=np.inf)
-    return -cv2.dilate(negated, np.ones((5, 5), np.uint8), borderType=cv2.BORDER_REPLICATE)
 
 
 @pytest.mark.parametrize(
