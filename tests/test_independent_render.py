@@ -9,33 +9,14 @@ import cv2
 import numpy as np
 import pytest
 import tifffile
+from image_shift import phase_shift_px
 from independent_render import Optics, expose, fill_farthest, profile_text, render, srgb_to_linear
-from scipy import ndimage
 
 REPO = Path(__file__).resolve().parents[1]
 PROFILE = REPO / "devices" / "profiles" / "paper-70d.toml"
 MIDDLEBURY = REPO / ".." / "shared" / "data" / "middlebury"
 SENSOR_WIDTH_MM = 5472 * 0.004109  # the 70D's, as the profile gives it
 FULL_WIDTH_PX = 1390  # Books' photograph: the whole frame, scaled down
-
-
-def _shift_px(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
-    """(columns, rows) that image b is moved against image a: phase correlation, then Gauss-Newton steps (b
-    sampled back by the estimate with cubic splines, the rest solved from a's gradients)."""
-    a, b = a.astype(np.float64), b.astype(np.float64)
-    window = cv2.createHanningWindow(a.shape[::-1], cv2.CV_64F)
-    (dx, dy), _ = cv2.phaseCorrelate(a.copy(), b.copy(), window)  # it windows float64 inputs in place
-    inner = (slice(24, -24), slice(24, -24))
-    gx, gy = np.gradient(a)[1][inner].ravel(), np.gradient(a)[0][inner].ravel()
-    normal = np.array([[gx @ gx, gx @ gy], [gx @ gy, gy @ gy]])
-    for _ in range(50):
-        back = ndimage.shift(b, (-dy, -dx), order=3, mode="nearest")  # b at x + dx (not cv2.warpAffine: 1/32 px)
-        residual = (back - a)[inner].ravel()
-        ex, ey = np.linalg.solve(normal, [gx @ residual, gy @ residual])
-        dx, dy = dx - ex, dy - ey
-        if max(abs(ex), abs(ey)) < 1e-5:
-            return float(dx), float(dy)
-    raise AssertionError(f"the shift estimate did not converge (last step {ex:.2g}, {ey:.2g} px)")
 
 
 @pytest.mark.parametrize("distance_mm", [700.0, 900.0, 1000.0, 1250.0, 1600.0])
@@ -58,8 +39,8 @@ def test_a_plane_rendered_independently_moves_its_channels_as_the_optics_say(dis
     image = render(scene, np.full(texture.shape, expected, np.float32), optics)
     inner = (slice(40, -40), slice(40, -40))  # away from the mirrored borders
     red, green, blue = (image[inner][..., c] for c in range(3))  # each blurred by the same disc
-    red_dx, red_dy = _shift_px(blue, red)
-    green_dx, green_dy = _shift_px(blue, green)
+    red_dx, red_dy = phase_shift_px(red, blue)
+    green_dx, green_dy = phase_shift_px(green, blue)
     assert red_dx == pytest.approx(expected, abs=0.05)
     assert red_dy == pytest.approx(0.0, abs=0.05)
     assert (green_dx, green_dy) == pytest.approx((0.5 * expected, -0.5 * expected), abs=0.05)  # up when far

@@ -9,6 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from image_shift import phase_shift_px
 
 from mca.devices.profiles import load_profile
 from mca.devices.sim.render import SensorModel
@@ -49,34 +50,13 @@ def _texture(height: int, width: int, seed: int = 3, sigma: float = 2.0) -> np.n
     return (0.15 + 0.7 * noise).astype(np.float32)
 
 
-def _phase_shift(moved: np.ndarray, reference: np.ndarray, border: int = 40) -> tuple[float, float]:
-    """(dx, dy) such that moved(x) = reference(x - d), by phase correlation: the integer part from the peak of
-    the phase correlation, the rest from the slope of the cross-power spectrum's phase, -2 pi (f_x dx + f_y dy),
-    fitted over the low frequencies (weighted by magnitude) of the Hann-windowed interiors."""
-    (cx, cy), _ = cv2.phaseCorrelate(reference.astype(np.float64), moved.astype(np.float64))
-    ix, iy = int(round(cx)), int(round(cy))
-    h, w = reference.shape
-    a = reference[border : h - border, border : w - border].astype(np.float64)
-    b = moved[border + iy : h - border + iy, border + ix : w - border + ix].astype(np.float64)
-    window = np.outer(np.hanning(a.shape[0]), np.hanning(a.shape[1]))
-    cross = np.fft.fft2((b - b.mean()) * window) * np.conj(np.fft.fft2((a - a.mean()) * window))
-    fy = np.broadcast_to(np.fft.fftfreq(a.shape[0])[:, None], a.shape)
-    fx = np.broadcast_to(np.fft.fftfreq(a.shape[1])[None, :], a.shape)
-    radius = np.hypot(fx, fy)
-    low = (radius > 0) & (radius < 0.15)
-    weight = np.sqrt(np.abs(cross[low]))
-    design = np.stack([fx[low], fy[low]], axis=1) * (-2.0 * np.pi) * weight[:, None]
-    (dx, dy), *_ = np.linalg.lstsq(design, np.angle(cross[low]) * weight, rcond=None)
-    return ix + float(dx), iy + float(dy)
-
-
 def test_the_phase_correlation_measures_a_known_shift() -> None:
     from mca.devices.sim.render import shift_image
 
     grey = _texture(192, 256)
     for shift in ((0.74, 0.3), (-1.6, 2.2), (3.3, -0.45)):
         moved = shift_image(np.pad(grey, 30, mode="reflect"), shift)[30:-30, 30:-30]
-        assert _phase_shift(moved, grey) == pytest.approx(shift, abs=0.005)
+        assert phase_shift_px(moved, grey) == pytest.approx(shift, abs=0.005)
 
 
 @pytest.mark.parametrize("distance_mm", [1400.0, 820.0])  # behind and before the focus plane
@@ -89,10 +69,10 @@ def test_a_fronto_parallel_plane_is_shifted_by_the_thin_lens_amount_in_each_filt
     pitch = 22.5 / w
     for index, channel in enumerate(("red", "green", "blue")):
         expected = _thin_lens_shift_px(channel, distance_mm, 1000.0, pitch)
-        measured = _phase_shift(images[..., index], grey)
+        measured = phase_shift_px(images[..., index], grey)
         assert measured == pytest.approx(expected, abs=0.01), channel
     # red against blue: the same blur on both, the widest-pair disparity exactly
-    red_blue = _phase_shift(images[..., 0], images[..., 2])
+    red_blue = phase_shift_px(images[..., 0], images[..., 2])
     disparity = _thin_lens_shift_px("red", distance_mm, 1000.0, pitch)[0] * 2.0
     assert abs(disparity) > 1.5  # a sub-pixel part and more than a pixel: not a lucky integer
     assert red_blue == pytest.approx((disparity, 0.0), abs=0.01)
@@ -286,7 +266,7 @@ def test_the_mosaic_samples_each_colour_at_its_own_bayer_site() -> None:
     mosaic = expose_mosaic(sensor_signal(images, Realism(sensor), optics), sensor, np.random.default_rng(0))
     planes = bayer_planes(mosaic, sensor.black_level, sensor.white_level)
     offsets = bayer_channel_offsets_px("RGGB")  # (dx, dy) of R, G, B samples in half-resolution px
-    measured = _phase_shift(planes[..., 0], planes[..., 2], border=20)
+    measured = phase_shift_px(planes[..., 0], planes[..., 2], border=20)
     disparity = optics.disparity_px(1400.0)
     # red content at full-res x + d/2 sampled on even sites, blue at x - d/2 on odd ones
     expected_x = disparity / 2.0 - (offsets[0][0] - offsets[2][0])
