@@ -462,15 +462,16 @@ class CostInput:
             ("texture", window_px), lambda: texture_energy(self.bands, window_px, self.window_energy(window_px))
         )
 
-    def signal_weight(self, window_px: int, half_snr: float) -> np.ndarray:
+    def signal_weight(self, window_px: int, half_snr: float, channels: str = "second") -> np.ndarray:
         """`features.signal_weight` of the bands with their noise model (shared: do not write to it). The dense
         search and the refinement ask for the same window's."""
         if self.noise is None:
             raise ValueError("these cost inputs carry no noise model: make them with cost_input(..., noise_model=True)")
         noise = self.noise
+        energy = self.window_energy(window_px) if channels == "total" else None
         return self._once(
-            ("signal", window_px, half_snr),
-            lambda: signal_weight(self.bands, noise, window_px, half_snr, self.window_energy(window_px)),
+            ("signal", window_px, half_snr, channels),
+            lambda: signal_weight(self.bands, noise, window_px, half_snr, energy, channels),
         )
 
     def _once(self, key: tuple, make: Callable[[], np.ndarray]) -> np.ndarray:

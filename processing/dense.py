@@ -65,6 +65,10 @@ class DenseParams:
     # needs the noise model): noise alone 0, this ratio one half; 0 = every pixel's cost counts fully. 0.1 of
     # 0.1-2 tried on the tuning renders: lower helps weakly textured content more; 0.5 splits dog.png's wall
     half_weight_snr: float = 0.1
+    # whose signal-to-noise ratio that is (`features.signal_weight`): "second", the channel with the second most
+    # signal (the cost needs two channels with structure to align; docs/evaluation.md, fourteenth stop), or
+    # "total", all channels' together (until then). The half-size share (`coarse_half_snr`) always asks "total"
+    signal_channels: str = "second"
 
 
 @dataclass
@@ -167,14 +171,14 @@ def _cost_hwd(
         share = params.coarse_weight / (1.0 + params.coarse_weight)
         if params.coarse_half_snr > 0 and inputs.noise is not None:
             shares = np.float32(share) * (
-                np.float32(1.0) - inputs.signal_weight(params.window_px, params.coarse_half_snr)
+                np.float32(1.0) - inputs.signal_weight(params.window_px, params.coarse_half_snr, "total")
             )
     else:
         coarse = np.zeros((count, 1, 1), np.float32)
         share = 0.0
     weight = np.zeros((0, 0), np.float32)
     if params.half_weight_snr > 0 and inputs.noise is not None:
-        weight = inputs.signal_weight(params.window_px, params.half_weight_snr)
+        weight = inputs.signal_weight(params.window_px, params.half_weight_snr, params.signal_channels)
     out = np.empty((h, w, count), np.float32)
     buffer = np.empty((min(_CHUNK, count), h, w), np.float32)
     for first in range(0, count, _CHUNK):

@@ -250,22 +250,58 @@ def texture_energy(bands: list[np.ndarray], window_px: int, energy: np.ndarray |
     return np.sqrt(np.maximum(mean / np.float32(3 * len(bands)), 0.0))
 
 
+SIGNAL_CHANNELS = ("second", "total")
+
+
 def signal_weight(
-    bands: list[np.ndarray], noise: FeatureNoise, window_px: int, half_snr: float, energy: np.ndarray | None = None
+    bands: list[np.ndarray],
+    noise: FeatureNoise,
+    window_px: int,
+    half_snr: float,
+    energy: np.ndarray | None = None,
+    channels: str = "second",
 ) -> np.ndarray:
     """(H, W) float32 in [0, 1): how much of each window's structure is signal rather than sensor noise,
-    s / (s + `half_snr`), s = E / N - 1 the window's signal-to-noise ratio: E the feature energy in the window,
+    s / (s + `half_snr`), s the window's signal-to-noise ratio E / N - 1: E the feature energy in the window,
     N what `noise` expects of the noise alone there. A window of noise alone (E about N) weighs about 0, one
     whose signal carries `half_snr` times the noise energy 0.5, strong texture about 1.
 
+    `channels` says whose ratio: "second" (the default) that of the channel with the second most signal, each
+    channel's energy over its own noise. The colour-alignment cost measures how the channels agree, and a window
+    where one channel alone has structure says nothing about the disparity however strong that channel is: a
+    dark red sofa with red texture and green and blue noise, a red wall behind red rings. "total": all
+    channels' energy over all channels' noise (is there structure in the window at all).
+
     Unlike `texture_energy`, this does not depend on what the rest of the image holds: on a photograph of
     texture-less surfaces most windows hold noise alone, and their colour-alignment cost says nothing.
-    `energy` as for `texture_energy`."""
-    if energy is None:
-        energy = window_energy(bands, window_px)
-    noise_sum = np.asarray(np.sum(noise.variance, axis=0), np.float32) * np.float32(np.sum(noise.band_gain))
-    noise_energy = cv2.boxFilter(noise_sum, cv2.CV_32F, (window_px, window_px), borderType=cv2.BORDER_REFLECT)
-    snr = np.maximum(energy / np.maximum(noise_energy, np.float32(1e-30)) - np.float32(1.0), np.float32(0.0))
+    `energy` as for `texture_energy` ("total" only)."""
+    if channels not in SIGNAL_CHANNELS:
+        raise ValueError(f"signal channels {channels!r}: choose one of {', '.join(SIGNAL_CHANNELS)}")
+    gain = np.float32(np.sum(noise.band_gain))
+    size = (window_px, window_px)
+    if channels == "total":
+        if energy is None:
+            energy = window_energy(bands, window_px)
+        noise_sum = np.asarray(np.sum(noise.variance, axis=0), np.float32) * gain
+        noise_energy = cv2.boxFilter(noise_sum, cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
+        snr = np.maximum(energy / np.maximum(noise_energy, np.float32(1e-30)) - np.float32(1.0), np.float32(0.0))
+    else:
+        ratios = []
+        for c in range(bands[0].shape[2]):
+            squares = np.zeros(bands[0].shape[:2], np.float32)
+            for band in bands:
+                squares += band[..., c] * band[..., c]
+            channel_energy = cv2.boxFilter(squares, cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
+            channel_noise = cv2.boxFilter(
+                np.asarray(noise.variance[c], np.float32) * gain, cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT
+            )
+            ratios.append(channel_energy / np.maximum(channel_noise, np.float32(1e-30)))
+        if len(ratios) != 3:
+            raise ValueError(f"signal channels 'second' needs three colour channels, not {len(ratios)}")
+        r, g, b = ratios
+        # the middle of three: max(min(r, g), min(max(r, g), b))
+        second = np.maximum(np.minimum(r, g), np.minimum(np.maximum(r, g), b))
+        snr = np.maximum(second - np.float32(1.0), np.float32(0.0))
     return (snr / (snr + np.float32(half_snr))).astype(np.float32)
 
 

@@ -385,7 +385,9 @@ def _disparity(run: _Run) -> None:
 
 def _surfaces(run: _Run) -> None:
     run.aligned = display_gamma(warp_channels(run.small, run.aperture, run.dense.disparity_px))
-    evidence = _evidence(run.inputs, run.dense, run.params.evidence, run.params.dense.half_weight_snr)
+    evidence = _evidence(
+        run.inputs, run.dense, run.params.evidence, run.params.dense.half_weight_snr, run.params.dense.signal_channels
+    )
     run.surfaces = build_surfaces(run.aligned, run.dense.disparity_px, run.params.surfaces, evidence=evidence)
     run.recorder.record("surfaces", labels=run.surfaces.labels, count=run.surfaces.count)
 
@@ -508,9 +510,11 @@ def _region_models(sketch: Sketch, refined: np.ndarray) -> dict[int, np.ndarray]
     return models
 
 
-def _evidence(inputs: CostInput, dense: DenseDisparity, kind: str, half_snr: float) -> np.ndarray | None:
+def _evidence(
+    inputs: CostInput, dense: DenseDisparity, kind: str, half_snr: float, channels: str = "second"
+) -> np.ndarray | None:
     """How much each pixel's dense disparity is worth: how much of its window is signal rather than noise
-    (`features.signal_weight`, half at `half_snr`; "signal", when the inputs carry the noise model, else as
+    (`features.signal_weight`, half at `half_snr`, of `channels`; "signal", when the inputs carry the noise model, else as
     "texture"), its texture relative to the image's median texture (saturating at 1), or the dense confidence.
 
     What "signal" is for: on a photograph of texture-less surfaces the median window holds noise alone, and beside
@@ -521,7 +525,7 @@ def _evidence(inputs: CostInput, dense: DenseDisparity, kind: str, half_snr: flo
     if kind == "confidence":
         return dense.confidence
     if kind == "signal" and inputs.noise is not None and half_snr > 0:
-        return inputs.signal_weight(9, half_snr)
+        return inputs.signal_weight(9, half_snr, channels)
     energy = inputs.texture_energy(9)
     return np.clip(energy / (float(np.median(energy)) + 1e-9), 0.0, 1.0).astype(np.float32)
 

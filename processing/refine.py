@@ -59,6 +59,7 @@ class RefineParams:
     # a pixel's vote weighs its texture times s / (s + this), s its window's signal-to-noise ratio
     # (`features.signal_weight`; with the noise); 0: texture alone
     half_weight_snr: float = 0.1
+    signal_channels: str = "second"  # whose signal-to-noise ratio (`DenseParams.signal_channels`)
     # no cell votes with more than this many times its region's median cell vote (0: no cap); see the module
     # docstring. 4 and 10 tried on the tuning renders (tenth stop): 4 a little better, both fix paper-c and -f
     vote_cap: float = 4.0
@@ -232,7 +233,7 @@ def refine_regions(
         raise ValueError("refine_regions: `inputs` must be the CostInput whose stack `bands` and noise these are")
     texture = inputs.texture_energy(params.window_px) * interior_weights(labels, reach)
     if noise is not None and params.half_weight_snr > 0:  # windows of noise alone do not vote
-        texture *= inputs.signal_weight(params.window_px, params.half_weight_snr)
+        texture *= inputs.signal_weight(params.window_px, params.half_weight_snr, params.signal_channels)
     weights = np.where(clear, texture, 0.0).astype(np.float32)
     cells_x = (w + params.cell_px - 1) // params.cell_px
     cell = (np.arange(h)[:, None] // params.cell_px) * cells_x + np.arange(w)[None, :] // params.cell_px

@@ -147,6 +147,31 @@ def test_a_one_colour_wall_framed_by_texture_takes_the_frames_disparity_despite_
     assert wrong[DenseParams().half_weight_snr] < 0.01, wrong
 
 
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_wall_textured_in_one_colour_alone_takes_the_frames_disparity(seed):
+    """A plane at +3 px whose middle (a dark red sofa, a red wall) has texture in its red channel alone, green and
+    blue flat, and whose 16-px frame is textured in every channel, with sensor noise. The colour-alignment cost
+    needs two channels with structure: the middle's cost curves are the noise's. Weighted by the signal of all
+    channels together (`signal_channels="total"`), the red texture counts them fully and 10-22 % of the middle
+    goes wrong; weighted by the channel with the second most signal (the default), the middle takes the frame's
+    disparity."""
+    shape = (220, 320)
+    frame = texture(shape, seed, colour=(0.5, 0.4, 0.3), contrast=0.35)
+    wall = np.full(shape + (3,), 0.3, np.float32)
+    wall[..., 0] = texture(shape, seed + 20, colour=(0.6, 0.3, 0.3), contrast=0.35)[..., 0]
+    inside = np.zeros(shape, np.float32)
+    inside[16:-16, 16:-16] = 1.0
+    clean = render_layers([(frame, np.ones(shape, np.float32), 3.0), (wall, inside, 3.0)], shape, APERTURE)
+    noisy = clean + np.random.default_rng(seed).normal(0.0, 0.01, clean.shape).astype(np.float32)
+    wrong = {}
+    for channels in ("total", "second"):
+        result = estimate_dense(noisy, APERTURE, (-12.0, 12.0), DenseParams(signal_channels=channels))
+        wrong[channels] = float(np.mean(np.abs(result.disparity_px[30:-30, 30:-30] - 3.0) > 1.0))
+    assert DenseParams().signal_channels == "second"
+    assert wrong["total"] > 0.05, wrong
+    assert wrong["second"] < 0.01, wrong
+
+
 @pytest.mark.parametrize("seed", [1, 2])
 def test_a_thin_near_bar_keeps_its_disparity_where_its_own_windows_have_signal(seed):
     """An 8-px textured bar at -2 px before a textured wall at +4 px, with sensor noise. The half-size cost's

@@ -215,6 +215,35 @@ def test_the_signal_weight_is_near_zero_on_noise_alone_and_near_one_on_texture(s
     assert weights["flat"] + 0.2 < weights["faint"] < weights["textured"] - 0.02, weights
 
 
+def test_the_signal_weight_needs_two_channels_with_structure():
+    """`signal_weight(channels="second")` (the default) reads the channel with the second most signal: texture in
+    one channel alone (red over flat green and blue) is noise to the colour-alignment cost, weight about 0, while
+    all channels' signal together ("total") calls it signal. Texture in two channels, or in all three, is signal
+    either way; each channel's ratio is against its own noise, so a channel with more noise than the others counts
+    at its own level. Unknown channel settings are refused with their name."""
+    from mca.processing.features import signal_weight
+
+    rng = np.random.default_rng(12)
+    shape = (200, 240)
+    grain = texture(shape, 5, colour=(0.4, 0.4, 0.4), contrast=0.35)[..., 0]
+    weights = {}
+    for name, textured in (("red", (0,)), ("red-green", (0, 1)), ("all", (0, 1, 2))):
+        clean = np.full(shape + (3,), 0.4, np.float32)
+        for c in textured:
+            clean[..., c] = grain
+        noisy = clean + rng.normal(0.0, 0.01, clean.shape).astype(np.float32)
+        bands = feature_bands(noisy)
+        noise = feature_noise(noisy, bands)
+        weights[name] = {
+            ch: float(np.median(signal_weight(bands, noise, 9, 1.0, channels=ch))) for ch in ("second", "total")
+        }
+    assert weights["red"]["second"] < 0.15 and weights["red"]["total"] > 0.9, weights
+    assert weights["red-green"]["second"] > 0.9 and weights["all"]["second"] > 0.95, weights
+    assert abs(weights["all"]["second"] - weights["all"]["total"]) < 0.02, weights
+    with pytest.raises(ValueError, match="'brightest'"):
+        signal_weight(bands, noise, 9, 1.0, channels="brightest")
+
+
 def test_the_signal_evidence_is_the_signal_weight_and_without_a_noise_model_the_texture():
     """`PipelineParams.evidence = "signal"` weighs the surfaces' pixels by `features.signal_weight`; inputs
     without a noise model fall back to the texture evidence rather than failing."""
