@@ -468,10 +468,16 @@ class CostInput:
         if self.noise is None:
             raise ValueError("these cost inputs carry no noise model: make them with cost_input(..., noise_model=True)")
         noise = self.noise
-        energy = self.window_energy(window_px) if channels == "total" else None
         return self._once(
             ("signal", window_px, half_snr, channels),
-            lambda: signal_weight(self.bands, noise, window_px, half_snr, energy, channels),
+            lambda: signal_weight(
+                self.bands,
+                noise,
+                window_px,
+                half_snr,
+                self.window_energy(window_px) if channels == "total" else None,
+                channels,
+            ),
         )
 
     def _once(self, key: tuple, make: Callable[[], np.ndarray]) -> np.ndarray:

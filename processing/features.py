@@ -286,8 +286,10 @@ def signal_weight(
         noise_energy = cv2.boxFilter(noise_sum, cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
         snr = np.maximum(energy / np.maximum(noise_energy, np.float32(1e-30)) - np.float32(1.0), np.float32(0.0))
     else:
+        if bands[0].shape[2] != 3:
+            raise ValueError(f"signal channels 'second' needs three colour channels, not {bands[0].shape[2]}")
         ratios = []
-        for c in range(bands[0].shape[2]):
+        for c in range(3):
             squares = np.zeros(bands[0].shape[:2], np.float32)
             for band in bands:
                 squares += band[..., c] * band[..., c]
@@ -296,8 +298,6 @@ def signal_weight(
                 np.asarray(noise.variance[c], np.float32) * gain, cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT
             )
             ratios.append(channel_energy / np.maximum(channel_noise, np.float32(1e-30)))
-        if len(ratios) != 3:
-            raise ValueError(f"signal channels 'second' needs three colour channels, not {len(ratios)}")
         r, g, b = ratios
         # the middle of three: max(min(r, g), min(max(r, g), b))
         second = np.maximum(np.minimum(r, g), np.minimum(np.maximum(r, g), b))
