@@ -158,3 +158,42 @@ def test_twins_of_a_render_folder_score_as_the_renders_do(tmp_path):
     bad = {row["name"]: row["metrics"]["ours"]["bad_1"] for row in scored}
     assert set(bad) == {"Books-s3", "Books-s3-twin"}
     assert max(bad.values()) <= 0.05, bad
+
+
+def _cost_floor_module():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("cost_floor", REPO / "benchmarks" / "cost_floor.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_cost_floor_is_nil_on_grey_content_and_reads_a_wrong_truth_as_its_offset():
+    """`benchmarks/cost_floor.py`: on a plane rendered independently from a texture whose channels are one line
+    (grey), the colour-line cost's minimum in every 32-px cell is the true disparity to 0.01 px; told a truth 0.3 px
+    too far, every cell reads -0.3 px; and on a texture whose channels carry structure of their own (a colour
+    photograph's colour edges, here independent noise in each channel) the cells' minima scatter by more than
+    the sampling's 0.01 px (docs/evaluation.md, fifteenth stop: 0.06-0.11 px on the Middlebury photographs)."""
+    from mca.devices.profiles import load_profile_file
+
+    floor = _cost_floor_module()
+    aperture = load_profile_file(PROFILE).aperture
+    optics = Optics.from_profile(PROFILE, 1200.0, SENSOR_WIDTH_MM / 1368)
+    rng = np.random.default_rng(5)
+    shared = cv2.GaussianBlur(rng.random((300, 300)).astype(np.float32), (0, 0), 1.5)
+    own = cv2.GaussianBlur(rng.random((300, 300, 3)).astype(np.float32), (0, 0), 1.5)
+    disparity = np.full(shared.shape, 3.0, np.float32)
+    inner = (slice(40, -40), slice(40, -40))
+    grey = render(np.repeat(shared[..., None], 3, axis=2), disparity, optics, 0.05, 2)[inner]
+    truth = disparity[inner]
+    minima, kept = floor.cell_minima(grey, aperture, truth, 32, noise_model=False)
+    assert kept.sum() >= 36
+    grey_floor = float(np.median(np.abs(minima[kept])))
+    assert grey_floor < 0.005
+    minima, kept = floor.cell_minima(grey, aperture, truth + np.float32(0.3), 32, noise_model=False)
+    assert np.median(minima[kept]) == pytest.approx(-0.3, abs=0.01)
+    colour = render(0.6 * shared[..., None] + 0.4 * own, disparity, optics, 0.05, 2)[inner]
+    minima, kept = floor.cell_minima(colour, aperture, truth, 32, noise_model=False)
+    assert np.median(np.abs(minima[kept])) > max(0.02, 4 * grey_floor)
