@@ -77,9 +77,11 @@ def photograph_floor(image: str, grey: bool, cell_px: int) -> None:
     from mca.devices.profiles import load_profile_file
 
     profile_path = repo / "devices" / "profiles" / "paper-70d.toml"
-    aperture = load_profile_file(profile_path).aperture
-    width = 1368
-    optics = Optics.from_profile(profile_path, 1200.0, 0.004109 * 5472 / width)
+    profile = load_profile_file(profile_path)
+    assert profile.pixel_pitch_mm is not None and profile.width_px is not None  # the built-in profile has both
+    width = 1368  # the development set's renders: the whole sensor width in this many pixels
+    # the focus distance only places the plane, whose disparity is given below
+    optics = Optics.from_profile(profile_path, 1200.0, profile.pixel_pitch_mm * profile.width_px / width)
     picture = cv2.imread(image, cv2.IMREAD_COLOR)
     if picture is None:
         raise SystemExit(f"{image}: not an image OpenCV can read")
@@ -97,7 +99,7 @@ def photograph_floor(image: str, grey: bool, cell_px: int) -> None:
         )
         planes = light[40:-40, 40:-40]  # away from the frame's replicated border
         truth = np.full(planes.shape[:2], disparity_px, np.float32)
-        minima, kept = cell_minima(planes, aperture, truth, cell_px, noise_model=False)
+        minima, kept = cell_minima(planes, profile.aperture, truth, cell_px, noise_model=False)
         size = np.abs(minima[kept])
         print(
             f"{Path(image).parent.name or image} {'grey' if grey else 'colour'} plane at {disparity_px:+.0f} px: "
