@@ -74,14 +74,15 @@ def photograph_floor(image: str, grey: bool, cell_px: int) -> None:
     sys.path.insert(0, str(repo / "tests"))
     from independent_render import Optics, render, srgb_to_linear
 
+    from mca.capture.simulated_shots import sensor_width_mm
     from mca.devices.profiles import load_profile_file
 
     profile_path = repo / "devices" / "profiles" / "paper-70d.toml"
     profile = load_profile_file(profile_path)
-    assert profile.pixel_pitch_mm is not None and profile.width_px is not None  # the built-in profile has both
     width = 1368  # the development set's renders: the whole sensor width in this many pixels
-    # the focus distance only places the plane, whose disparity is given below
-    optics = Optics.from_profile(profile_path, 1200.0, profile.pixel_pitch_mm * profile.width_px / width)
+    # the pitch as `mca process` takes it for those renders; the focus distance only places the plane, whose
+    # disparity is given below
+    optics = Optics.from_profile(profile_path, 1200.0, sensor_width_mm(profile) / width)
     picture = cv2.imread(image, cv2.IMREAD_COLOR)
     if picture is None:
         raise SystemExit(f"{image}: not an image OpenCV can read")
