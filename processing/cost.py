@@ -27,6 +27,25 @@ offset); it is an option, not the default: it smooths the signal by an amount th
 on the paper scenes it did worse (median object error 2.5 % with the noise model, 3.5 % without; the in-focus
 object 2.3 mm off), while on the full-colour renders it did a little better (tuning bad-0.5 21.6 %).
 
+What the noise model does not take out: a window of interpolated noise is smoother, so it holds fewer
+independent samples, and the chance correlation between channels of noise alone is larger there. On flat grey with
+white noise the bilinear cost, with or without the model, still swings by about 0.01 with a 2 px period in the
+red-blue disparity; on a weakly textured, noisy surface that is as much as the signal's own curve (Venus-s2, ISO
+1600, the vignetted top left: the summed cost peaked at the truth, 4.5-5.2 px, and was lowest 1 px either side;
+the dense map came out 0.85 px short over the whole surface, and exact on the same render without noise).
+
+The band-limited sampler (`sampling="phase"`) moves each channel by a Kaiser-windowed sinc of 16 taps
+(`shift_exact`), whose gain is flat within 0.1 % up to 0.8 of the Nyquist frequency at every fractional shift:
+the bands' noise keeps 97-100 % of its variance and its correlations at every shift, the signal is not smoothed,
+and no noise model is needed. For a search over evenly spaced candidates the bands are shifted once per set of
+fractional channel shifts (4 for 0.5 px steps with the paper's aperture) and the kernel moves them by whole
+pixels only; per-pixel maps (`cost_at`) read bands shifted 1/8 px apart, blended linearly (apertures whose
+channels move along one image axis each; others fall back to bilinear). On the tuning renders the dense map
+improves (its bad-1 mean 10.5 -> 10.0 %, bad-0.5 26.6 -> 25.1 %, relative error 8.7 -> 8.0 %), the final
+figures do not (bad-1 mean 8.75 -> 8.85 %, median 7.5 -> 9.2 %, worst 19.6 -> 17.9 %; the weakly textured set's
+worst 34.4 -> 39.6 %): the 2.1D sketch's joins turn such changes into whole regions won or lost. It is an
+option, not the default (docs/evaluation.md, seventeenth stop).
+
 Both kernels are compiled with numba (pure numpy would spend seconds per megapixel here): the box sums are
 running sums over a ring buffer of rows, so one candidate costs one pass over the image.
 """
@@ -36,6 +55,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import cv2
 import numba as nb
 import numpy as np
 
@@ -493,7 +513,96 @@ def cost_input(planes: np.ndarray, noise_model: bool = True) -> CostInput:
     return CostInput(bands, stack_bands(bands), feature_noise(planes, bands, log=log) if noise_model else None)
 
 
-SAMPLINGS = ("bspline", "bilinear")
+SAMPLINGS = ("bspline", "bilinear", "phase")
+_PHASE_GROUPS_MAX = 16  # "phase" sampling: at most this many distinct sets of fractional channel shifts
+
+
+_SHIFT_HALF_TAPS = 8  # the band-limited shift: a Kaiser-windowed sinc of 2 x 8 taps
+_SHIFT_BETA = 5.0  # its window: gain flat within 0.1 % up to 0.8 of the Nyquist frequency at every fraction
+
+
+def shift_taps(fraction: float) -> np.ndarray:
+    """The 2 x `_SHIFT_HALF_TAPS` taps (at offsets -7..8) that sample a line at x + `fraction`, 0 <= fraction < 1:
+    a Kaiser-windowed sinc, its sum 1."""
+    half = _SHIFT_HALF_TAPS
+    x = np.arange(-half + 1, half + 1) - fraction
+    window = np.i0(_SHIFT_BETA * np.sqrt(np.clip(1.0 - (x / half) ** 2, 0.0, 1.0))) / np.i0(_SHIFT_BETA)
+    taps = np.sinc(x) * window
+    return (taps / taps.sum()).astype(np.float32)
+
+
+def shift_exact(image: np.ndarray, dx: float, dy: float) -> np.ndarray:
+    """`image` (..., H, W) sampled at (x + dx, y + dy): the fractional part by a band-limited (windowed sinc)
+    filter along each axis, mirrored at the borders; the whole pixels moved with the border repeated. Unlike
+    bilinear sampling, it keeps the power spectrum of the image up to 0.8 of the Nyquist frequency: the noise of
+    a band-pass plane keeps its variance and its correlation at every fractional shift."""
+    out = np.ascontiguousarray(image, np.float32)
+    lead = out.shape[:-2]
+    flat = out.reshape((-1,) + out.shape[-2:])
+    one = np.ones(1, np.float32)
+    for axis, shift in ((-1, dx), (-2, dy)):
+        whole = int(np.floor(shift))
+        frac = shift - whole
+        if frac > 1e-9:
+            taps = shift_taps(frac)
+            moved = np.empty_like(flat)
+            for i in range(flat.shape[0]):
+                if axis == -1:
+                    cv2.sepFilter2D(
+                        flat[i],
+                        -1,
+                        taps,
+                        one,
+                        dst=moved[i],
+                        anchor=(_SHIFT_HALF_TAPS - 1, 0),
+                        borderType=cv2.BORDER_REFLECT,
+                    )
+                else:
+                    cv2.sepFilter2D(
+                        flat[i],
+                        -1,
+                        one,
+                        taps,
+                        dst=moved[i],
+                        anchor=(0, _SHIFT_HALF_TAPS - 1),
+                        borderType=cv2.BORDER_REFLECT,
+                    )
+            flat = moved
+        if whole:
+            n = flat.shape[axis]
+            flat = np.take(flat, np.clip(np.arange(n) + whole, 0, n - 1), axis=axis)
+    return np.ascontiguousarray(flat.reshape(lead + flat.shape[-2:]), np.float32)
+
+
+def _phase_groups(shifts: np.ndarray, candidates: np.ndarray) -> list[tuple[np.ndarray, float, np.ndarray, float]]:
+    """Candidates grouped so that within a group every channel's shifts differ by whole pixels: a list of
+    (indices, base, multiples, spacing) with candidates[indices] = base + spacing * multiples, the base within
+    one spacing above zero (its channels' whole-pixel shifts are then 0 or -1: near the borders the clamping
+    differs from the other samplers' by a pixel or two). Candidates that do not fall into a few such groups
+    (uneven, or a step whose shifts repeat only after many steps) are a group each."""
+    alone = [(np.array([k]), float(d), np.zeros(1), 1.0) for k, d in enumerate(candidates)]
+    if len(candidates) < 2:
+        return alone
+    step = float(candidates[1] - candidates[0])
+    if step <= 0 or not np.allclose(np.diff(candidates), step, atol=1e-9):
+        return alone
+    for period in range(1, _PHASE_GROUPS_MAX + 1):
+        moved = period * step * shifts
+        if np.allclose(moved, np.round(moved), atol=1e-6):
+            break
+    else:
+        return alone
+    groups = []
+    for first in range(min(period, len(candidates))):
+        indices = np.arange(first, len(candidates), period)
+        lead = float(candidates[first])
+        on_grid = abs(lead / step - round(lead / step)) < 1e-6
+        # on the grid k * step, the base is the group's member in [0, period * step), whatever slice of the
+        # candidates came in: chunks of one search share their shifted bands
+        base = step * (round(lead / step) % period) if on_grid else lead
+        multiples = np.round((candidates[indices] - base) / (period * step))
+        groups.append((indices, base, multiples, period * step))
+    return groups
 
 
 def _noise_arrays(
@@ -517,7 +626,7 @@ def _noise_arrays(
 def _check_sampling(sampling: str) -> bool:
     if sampling not in SAMPLINGS:
         raise ValueError(f"sampling must be one of {SAMPLINGS}, not {sampling!r}")
-    return sampling == "bspline"
+    return sampling == "bspline"  # "phase" per pixel: bilinear
 
 
 def cost_volume(
@@ -529,6 +638,7 @@ def cost_volume(
     sampling: str = "bilinear",
     noise: FeatureNoise | None = None,
     out: np.ndarray | None = None,
+    shifted: dict | None = None,
 ) -> np.ndarray:
     """(D, H, W) float32 colour-line cost of every pixel at every candidate disparity (px of these planes).
 
@@ -543,6 +653,17 @@ def cost_volume(
         out = np.empty(shape, np.float32)
     elif out.shape != shape or out.dtype != np.float32:
         raise ValueError(f"out must be float32 {shape}, not {out.dtype} {out.shape}")
+    if len(candidates) and sampling == "phase":
+        _phase_volume(
+            bands,
+            channel_shifts(aperture),
+            _phase_groups(channel_shifts(aperture), candidates),
+            window_px,
+            noise_floor,
+            out,
+            shifted,
+        )
+        return out
     if len(candidates):
         _maps(
             bands,
@@ -556,6 +677,113 @@ def cost_volume(
             out,
         )
     return out
+
+
+def _phase_volume(bands, shifts, groups, window_px, noise_floor, out, shifted=None):
+    """`cost_volume` with every channel shifted band-limited (`shift_exact`) to each group's base disparity;
+    the kernel then only moves whole pixels, where sampling changes neither signal nor noise. `shifted`: a dict
+    that keeps the shifted bands by base for the next call on the same bands (a search made in chunks)."""
+    empty = _noise_arrays(None, bands)
+    for indices, base, multiples, spacing in groups:
+        key = round(base, 9)
+        moved = shifted.get(key) if shifted is not None else None
+        if moved is None:
+            moved = np.empty_like(bands)
+            for c in range(3):
+                moved[:, c] = shift_exact(bands[:, c], base * shifts[c, 0], base * shifts[c, 1])
+            if shifted is not None:
+                shifted[key] = moved
+        whole = np.round(spacing * shifts)
+        _maps(
+            moved,
+            whole,
+            multiples,
+            np.zeros((1, 1, 1), np.float32),
+            int(window_px) // 2,
+            float(noise_floor) ** 2,
+            False,
+            *empty,
+            _view_rows(out, indices),
+        )
+
+
+_PHASES = 8  # per-pixel "phase" sampling: exact shifts at 1/8 px, linear between the two nearest
+
+
+def _axis_aligned(shifts: np.ndarray) -> bool:
+    return bool(np.all(np.count_nonzero(np.abs(shifts) > 1e-12, axis=1) <= 1))
+
+
+@nb.njit(cache=True, parallel=True, fastmath=FASTMATH)
+def _gather_phased(phases, axis, shift, disparity, out):
+    """out[b, y, x] = the channel's bands at (x, y) + disparity[y, x] * shift along `axis` (0: x, 1: y), from
+    `phases` (P + 1, B, H, W): its bands shifted exactly by k / P px, k = 0..P; the whole pixels clamped."""
+    steps = phases.shape[0] - 1
+    nbands, h, w = out.shape
+    for row in nb.prange(h):
+        y = np.int64(row)  # a prange index may be unsigned: kept signed so that the clamps stay integers
+        for x in range(w):
+            pos = disparity[y, x] * shift
+            whole = np.floor(pos)
+            q = (pos - whole) * steps
+            i = min(int(q), steps - 1)
+            t = q - i
+            yy = y
+            xx = x
+            if axis == 0:
+                xx = min(max(x + int(whole), 0), w - 1)
+            else:
+                yy = min(max(y + int(whole), 0), h - 1)
+            for b in range(nbands):
+                out[b, y, x] = (1.0 - t) * phases[i, b, yy, xx] + t * phases[i + 1, b, yy, xx]
+
+
+def _phase_maps(bands, shifts, maps, window_px, noise_floor, out):
+    """`cost_at` with the channels moved by exact shifts (`shift_exact`, 1/`_PHASES` px apart) rather than
+    bilinear sampling; for apertures whose channels each move along one image axis."""
+    nbands, _, h, w = bands.shape
+    phased = []
+    for c in range(3):
+        axis = 0 if abs(shifts[c, 0]) > 0 else 1
+        amount = float(shifts[c, axis])
+        if amount == 0.0:
+            phased.append((None, 0, 0.0))
+            continue
+        stack = np.empty((_PHASES + 1, nbands, h, w), np.float32)
+        for k in range(_PHASES + 1):
+            f = k / _PHASES
+            stack[k] = shift_exact(bands[:, c], f if axis == 0 else 0.0, f if axis == 1 else 0.0)
+        phased.append((stack, axis, amount))
+    batch = max(1, min(nb.get_num_threads(), maps.shape[0]))
+    sampled = np.empty((batch,) + bands.shape, np.float32)
+    for first in range(0, maps.shape[0], batch):
+        last = min(first + batch, maps.shape[0])
+        for k in range(first, last):
+            for c in range(3):
+                stack, axis, amount = phased[c]
+                if stack is None:
+                    sampled[k - first, :, c] = bands[:, c]
+                else:
+                    _gather_phased(stack, axis, amount, maps[k], sampled[k - first, :, c])
+        _presampled_maps(sampled[: last - first], int(window_px) // 2, float(noise_floor) ** 2, out[first:last])
+
+
+@nb.njit(cache=True, parallel=True)
+def _presampled_maps(sampled: np.ndarray, radius: int, eps: float, out: np.ndarray) -> None:
+    """out[k] = the cost map of the bands sampled[k] (B, 3, H, W) as they stand (already moved); one map per
+    thread."""
+    zeros = np.zeros((3, 2))
+    none = np.zeros((0, sampled.shape[4]), np.float32)
+    variance = np.zeros((0, 1, 1), np.float32)
+    gain = np.zeros(1)
+    rho = np.zeros((1, 2, 3))
+    signal_rho = np.zeros((1, 3, 2, 3))
+    for k in nb.prange(out.shape[0]):
+        _cost_map(sampled[k], zeros, 0.0, none, radius, eps, out[k], False, variance, gain, rho, signal_rho)
+
+
+def _view_rows(out, indices):
+    return out[indices[0] : indices[-1] + 1 : (indices[1] - indices[0]) if len(indices) > 1 else 1]
 
 
 def cost_at(
@@ -575,9 +803,13 @@ def cost_at(
     if maps.ndim == 2:
         maps = maps[None]
     out = np.empty(maps.shape, np.float32)
+    shifts = channel_shifts(aperture)
+    if sampling == "phase" and _axis_aligned(shifts):
+        _phase_maps(bands, shifts, maps, window_px, noise_floor, out)
+        return out
     _maps(
         bands,
-        channel_shifts(aperture),
+        shifts,
         np.zeros(0),
         maps,
         int(window_px) // 2,

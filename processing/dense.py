@@ -59,7 +59,9 @@ class DenseParams:
     noise_steps: float = 0.0
     narrow_range: bool = True  # find the occupied range on a quarter-size image first
     range_margin_px: float = 2.0  # kept around the occupied range
-    sampling: str = "bilinear"  # the cost's sampler, "bilinear" or "bspline" (`processing.cost` says when which)
+    sampling: str = (
+        "bilinear"  # the cost's sampler, "bilinear", "bspline" or "phase" (`processing.cost` says when which)
+    )
     noise_model: bool = True  # measure the sensor noise and take its sampling bias out of the cost (`processing.cost`)
     # a pixel's cost counts by its window's signal-to-noise ratio s as s / (s + this) (`features.signal_weight`;
     # needs the noise model): noise alone 0, this ratio one half; 0 = every pixel's cost counts fully. 0.1 of
@@ -94,6 +96,7 @@ def _volume_dhw(
     params: DenseParams,
     given: CostInput | None = None,
     out: np.ndarray | None = None,
+    shifted: dict | None = None,
 ) -> np.ndarray:
     """The (D, H, W) cost volume of `planes`; `given` is their `CostInput` when the caller has it already,
     `out` a buffer to fill."""
@@ -102,7 +105,7 @@ def _volume_dhw(
         raise ValueError("DenseParams.noise_model is set but the CostInput handed in carries no noise model")
     noise = inputs.noise if params.noise_model else None
     return cost_volume(
-        inputs.stacked, aperture, candidates, params.window_px, params.noise_floor, params.sampling, noise, out
+        inputs.stacked, aperture, candidates, params.window_px, params.noise_floor, params.sampling, noise, out, shifted
     )
 
 
@@ -181,9 +184,10 @@ def _cost_hwd(
         weight = inputs.signal_weight(params.window_px, params.half_weight_snr, params.signal_channels)
     out = np.empty((h, w, count), np.float32)
     buffer = np.empty((min(_CHUNK, count), h, w), np.float32)
+    shifted: dict = {}  # "phase" sampling: the bands shifted once for every chunk
     for first in range(0, count, _CHUNK):
         last = min(first + _CHUNK, count)
-        fine = _volume_dhw(planes, aperture, candidates[first:last], params, inputs, buffer[: last - first])
+        fine = _volume_dhw(planes, aperture, candidates[first:last], params, inputs, buffer[: last - first], shifted)
         _blend_kernel(fine, coarse[first:last], share, shares, weight, out, first)
     return out
 

@@ -54,7 +54,7 @@ class RefineParams:
     min_cells_for_slope: int = 6  # a curved region's correction gets a slope only with this many voting cells
     window_px: int = 9
     noise_floor: float = 2e-3
-    sampling: str = "bilinear"  # the cost's sampler (`processing.cost`)
+    sampling: str = "bilinear"  # the cost's sampler (`processing.cost`; "phase" tried: tuning bad-1 8.8 %, not better)
     noise_model: bool = True  # the pipeline measures the noise for the cost (`refine_regions(noise=...)`)
     # a pixel's vote weighs its texture times s / (s + this), s its window's signal-to-noise ratio
     # (`features.signal_weight`; with the noise); 0: texture alone
