@@ -40,11 +40,11 @@ the bands' noise keeps 97-100 % of its variance and its correlations at every sh
 and no noise model is needed. For a search over evenly spaced candidates the bands are shifted once per set of
 fractional channel shifts (4 for 0.5 px steps with the paper's aperture) and the kernel moves them by whole
 pixels only; per-pixel maps (`cost_at`) read bands shifted 1/8 px apart, blended linearly (apertures whose
-channels move along one image axis each; others fall back to bilinear). On the tuning renders the dense map
-improves (its bad-1 mean 10.5 -> 10.0 %, bad-0.5 26.6 -> 25.1 %, relative error 8.7 -> 8.0 %), the final
-figures do not (bad-1 mean 8.75 -> 8.85 %, median 7.5 -> 9.2 %, worst 19.6 -> 17.9 %; the weakly textured set's
-worst 34.4 -> 39.6 %): the 2.1D sketch's joins turn such changes into whole regions won or lost. It is an
-option, not the default (docs/evaluation.md, seventeenth stop).
+channels move along one image axis each; others fall back to bilinear). On 24 tuning renders, as the dense
+search's sampler, the final bad-1 mean went 8.41 -> 7.90 %, the worst 19.6 -> 17.9 %, bad-0.5 23.4 -> 21.8 %,
+the relative error 7.6 -> 7.1 %. It is an option, not the default: with it the books of the Bando photograph
+dog.png come out as two regions (`tests/test_bando.py`), the 2.1D sketch's joins again turning a small change of
+the dense map into a region split (docs/evaluation.md, seventeenth stop).
 
 Both kernels are compiled with numba (pure numpy would spend seconds per megapixel here): the box sums are
 running sums over a ring buffer of rows, so one candidate costs one pass over the image.
@@ -728,12 +728,12 @@ def _gather_phased(phases, axis, shift, disparity, out):
             q = (pos - whole) * steps
             i = min(int(q), steps - 1)
             t = q - i
-            yy = y
-            xx = x
+            yy = int(y)
+            xx = int(x)
             if axis == 0:
-                xx = min(max(x + int(whole), 0), w - 1)
+                xx = min(max(xx + int(whole), 0), w - 1)
             else:
-                yy = min(max(y + int(whole), 0), h - 1)
+                yy = min(max(yy + int(whole), 0), h - 1)
             for b in range(nbands):
                 out[b, y, x] = (1.0 - t) * phases[i, b, yy, xx] + t * phases[i + 1, b, yy, xx]
 
@@ -742,7 +742,7 @@ def _phase_maps(bands, shifts, maps, window_px, noise_floor, out):
     """`cost_at` with the channels moved by exact shifts (`shift_exact`, 1/`_PHASES` px apart) rather than
     bilinear sampling; for apertures whose channels each move along one image axis."""
     nbands, _, h, w = bands.shape
-    phased = []
+    phased: list[tuple[np.ndarray | None, int, float]] = []
     for c in range(3):
         axis = 0 if abs(shifts[c, 0]) > 0 else 1
         amount = float(shifts[c, axis])
@@ -760,11 +760,11 @@ def _phase_maps(bands, shifts, maps, window_px, noise_floor, out):
         last = min(first + batch, maps.shape[0])
         for k in range(first, last):
             for c in range(3):
-                stack, axis, amount = phased[c]
-                if stack is None:
+                moved, along, by = phased[c]
+                if moved is None:
                     sampled[k - first, :, c] = bands[:, c]
                 else:
-                    _gather_phased(stack, axis, amount, maps[k], sampled[k - first, :, c])
+                    _gather_phased(moved, along, by, maps[k], sampled[k - first, :, c])
         _presampled_maps(sampled[: last - first], int(window_px) // 2, float(noise_floor) ** 2, out[first:last])
 
 

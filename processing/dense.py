@@ -59,9 +59,7 @@ class DenseParams:
     noise_steps: float = 0.0
     narrow_range: bool = True  # find the occupied range on a quarter-size image first
     range_margin_px: float = 2.0  # kept around the occupied range
-    sampling: str = (
-        "bilinear"  # the cost's sampler, "bilinear", "bspline" or "phase" (`processing.cost` says when which)
-    )
+    sampling: str = "bilinear"  # the cost's sampler: "bilinear", "phase" or "bspline" (`processing.cost`)
     noise_model: bool = True  # measure the sensor noise and take its sampling bias out of the cost (`processing.cost`)
     # a pixel's cost counts by its window's signal-to-noise ratio s as s / (s + this) (`features.signal_weight`;
     # needs the noise model): noise alone 0, this ratio one half; 0 = every pixel's cost counts fully. 0.1 of
