@@ -35,7 +35,7 @@ red-blue disparity; on a weakly textured, noisy surface that is as much as the s
 the dense map came out 0.85 px short over the whole surface, and exact on the same render without noise).
 
 The band-limited sampler (`sampling="phase"`) moves each channel by a Kaiser-windowed sinc of 16 taps
-(`shift_exact`), whose gain is flat within 0.1 % up to 0.8 of the Nyquist frequency at every fractional shift:
+(`shift_band_limited`), whose gain is flat within 0.1 % up to 0.8 of the Nyquist frequency at every fractional shift:
 the bands' noise keeps 97-100 % of its variance and its correlations at every shift, the signal is not smoothed,
 and no noise model is needed. For a search over evenly spaced candidates the bands are shifted once per set of
 fractional channel shifts (4 for 0.5 px steps with the paper's aperture) and the kernel moves them by whole
@@ -531,7 +531,7 @@ def shift_taps(fraction: float) -> np.ndarray:
     return (taps / taps.sum()).astype(np.float32)
 
 
-def shift_exact(image: np.ndarray, dx: float, dy: float) -> np.ndarray:
+def shift_band_limited(image: np.ndarray, dx: float, dy: float) -> np.ndarray:
     """`image` (..., H, W) sampled at (x + dx, y + dy): the fractional part by a band-limited (windowed sinc)
     filter along each axis, mirrored at the borders; the whole pixels moved with the border repeated. Unlike
     bilinear sampling, it keeps the power spectrum of the image up to 0.8 of the Nyquist frequency: the noise of
@@ -626,7 +626,7 @@ def _noise_arrays(
 def _check_sampling(sampling: str) -> bool:
     if sampling not in SAMPLINGS:
         raise ValueError(f"sampling must be one of {SAMPLINGS}, not {sampling!r}")
-    return sampling == "bspline"  # "phase" per pixel: bilinear
+    return sampling == "bspline"  # "phase" where its own path does not apply (channels moving off the axes): bilinear
 
 
 def cost_volume(
@@ -680,7 +680,7 @@ def cost_volume(
 
 
 def _phase_volume(bands, shifts, groups, window_px, noise_floor, out, shifted=None):
-    """`cost_volume` with every channel shifted band-limited (`shift_exact`) to each group's base disparity;
+    """`cost_volume` with every channel shifted band-limited (`shift_band_limited`) to each group's base disparity;
     the kernel then only moves whole pixels, where sampling changes neither signal nor noise. `shifted`: a dict
     that keeps the shifted bands by base for the next call on the same bands (a search made in chunks)."""
     empty = _noise_arrays(None, bands)
@@ -690,7 +690,7 @@ def _phase_volume(bands, shifts, groups, window_px, noise_floor, out, shifted=No
         if moved is None:
             moved = np.empty_like(bands)
             for c in range(3):
-                moved[:, c] = shift_exact(bands[:, c], base * shifts[c, 0], base * shifts[c, 1])
+                moved[:, c] = shift_band_limited(bands[:, c], base * shifts[c, 0], base * shifts[c, 1])
             if shifted is not None:
                 shifted[key] = moved
         whole = np.round(spacing * shifts)
@@ -707,7 +707,7 @@ def _phase_volume(bands, shifts, groups, window_px, noise_floor, out, shifted=No
         )
 
 
-_PHASES = 8  # per-pixel "phase" sampling: exact shifts at 1/8 px, linear between the two nearest
+_PHASES = 8  # per-pixel "phase" sampling: band-limited shifts 1/8 px apart, linear between the two nearest
 
 
 def _axis_aligned(shifts: np.ndarray) -> bool:
@@ -717,7 +717,8 @@ def _axis_aligned(shifts: np.ndarray) -> bool:
 @nb.njit(cache=True, parallel=True, fastmath=FASTMATH)
 def _gather_phased(phases, axis, shift, disparity, out):
     """out[b, y, x] = the channel's bands at (x, y) + disparity[y, x] * shift along `axis` (0: x, 1: y), from
-    `phases` (P + 1, B, H, W): its bands shifted exactly by k / P px, k = 0..P; the whole pixels clamped."""
+    `phases` (P + 1, B, H, W): its bands shifted by k / P px (`shift_band_limited`), k = 0..P; the whole pixels
+    clamped."""
     steps = phases.shape[0] - 1
     nbands, h, w = out.shape
     for row in nb.prange(h):
@@ -739,8 +740,8 @@ def _gather_phased(phases, axis, shift, disparity, out):
 
 
 def _phase_maps(bands, shifts, maps, window_px, noise_floor, out):
-    """`cost_at` with the channels moved by exact shifts (`shift_exact`, 1/`_PHASES` px apart) rather than
-    bilinear sampling; for apertures whose channels each move along one image axis."""
+    """`cost_at` with the channels moved by band-limited shifts (`shift_band_limited`, 1/`_PHASES` px apart) rather
+    than bilinear sampling; for apertures whose channels each move along one image axis."""
     nbands, _, h, w = bands.shape
     phased: list[tuple[np.ndarray | None, int, float]] = []
     for c in range(3):
@@ -752,7 +753,7 @@ def _phase_maps(bands, shifts, maps, window_px, noise_floor, out):
         stack = np.empty((_PHASES + 1, nbands, h, w), np.float32)
         for k in range(_PHASES + 1):
             f = k / _PHASES
-            stack[k] = shift_exact(bands[:, c], f if axis == 0 else 0.0, f if axis == 1 else 0.0)
+            stack[k] = shift_band_limited(bands[:, c], f if axis == 0 else 0.0, f if axis == 1 else 0.0)
         phased.append((stack, axis, amount))
     batch = max(1, min(nb.get_num_threads(), maps.shape[0]))
     sampled = np.empty((batch,) + bands.shape, np.float32)
@@ -783,6 +784,7 @@ def _presampled_maps(sampled: np.ndarray, radius: int, eps: float, out: np.ndarr
 
 
 def _view_rows(out, indices):
+    """The rows `indices` (evenly spaced) of `out` as a view, for the kernel to write into."""
     return out[indices[0] : indices[-1] + 1 : (indices[1] - indices[0]) if len(indices) > 1 else 1]
 
 

@@ -11,7 +11,7 @@ from test_cost import reference_cost
 from test_noise_model import noisy_plane
 
 from mca.devices.profiles import load_profile
-from mca.processing.cost import channel_shifts, cost_at, cost_volume, shift_exact, shift_taps, stack_bands
+from mca.processing.cost import channel_shifts, cost_at, cost_volume, shift_band_limited, shift_taps, stack_bands
 from mca.processing.features import feature_bands
 
 APERTURE = load_profile("paper-70d").aperture
@@ -41,7 +41,7 @@ def periodic_texture(shape: tuple[int, int], seed: int) -> np.ndarray:
 @pytest.mark.parametrize("dx, dy", [(0.25, 0.0), (0.0, 0.5), (-1.375, 0.0), (0.0, 2.875), (0.3, -0.7)])
 def test_a_shift_is_scipys_fourier_shift_inside_the_image(dx, dy):
     plane = periodic_texture((64, 96), 1)[..., 0].astype(np.float64)
-    got = shift_exact(plane.astype(np.float32), dx, dy)
+    got = shift_band_limited(plane.astype(np.float32), dx, dy)
     ys, xs = np.mgrid[0:64, 0:96].astype(np.float64)
     expected = fourier_sampler(plane, xs + dx, ys + dy)
     inner = (slice(12, -12), slice(12, -12))
@@ -50,8 +50,8 @@ def test_a_shift_is_scipys_fourier_shift_inside_the_image(dx, dy):
 
 def test_whole_pixel_shifts_repeat_the_border_and_the_taps_sum_to_one():
     plane = np.arange(20, dtype=np.float32)[None, :].repeat(3, axis=0)
-    assert np.array_equal(shift_exact(plane, 2.0, 0.0)[0], np.r_[np.arange(2, 20), 19, 19])
-    assert np.array_equal(shift_exact(plane, -1.0, 0.0)[0], np.r_[0, np.arange(0, 19)])
+    assert np.array_equal(shift_band_limited(plane, 2.0, 0.0)[0], np.r_[np.arange(2, 20), 19, 19])
+    assert np.array_equal(shift_band_limited(plane, -1.0, 0.0)[0], np.r_[0, np.arange(0, 19)])
     for fraction in (0.0, 0.125, 0.5, 0.875):
         assert abs(float(shift_taps(fraction).sum()) - 1.0) < 1e-6
 
@@ -66,7 +66,7 @@ def test_the_bands_noise_keeps_its_variance_at_every_fractional_shift(band):
     inner = (slice(30, -30), slice(30, -30))
     before = plane[inner].var()
     for fraction in (0.25, 0.5, 0.75):
-        kept = shift_exact(plane, fraction, 0.0)[inner].var() / before
+        kept = shift_band_limited(plane, fraction, 0.0)[inner].var() / before
         assert 0.95 < kept < 1.01, (fraction, kept)
     halfway = (0.5 * (plane + np.roll(plane, -1, axis=1)))[inner].var() / before
     assert halfway < 0.9  # bilinear sampling halfway, for contrast
