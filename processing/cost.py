@@ -545,28 +545,11 @@ def shift_band_limited(image: np.ndarray, dx: float, dy: float) -> np.ndarray:
         frac = shift - whole
         if frac > 1e-9:
             taps = shift_taps(frac)
+            kx, ky = (taps, one) if axis == -1 else (one, taps)
+            anchor = (_SHIFT_HALF_TAPS - 1, 0) if axis == -1 else (0, _SHIFT_HALF_TAPS - 1)
             moved = np.empty_like(flat)
             for i in range(flat.shape[0]):
-                if axis == -1:
-                    cv2.sepFilter2D(
-                        flat[i],
-                        -1,
-                        taps,
-                        one,
-                        dst=moved[i],
-                        anchor=(_SHIFT_HALF_TAPS - 1, 0),
-                        borderType=cv2.BORDER_REFLECT,
-                    )
-                else:
-                    cv2.sepFilter2D(
-                        flat[i],
-                        -1,
-                        one,
-                        taps,
-                        dst=moved[i],
-                        anchor=(0, _SHIFT_HALF_TAPS - 1),
-                        borderType=cv2.BORDER_REFLECT,
-                    )
+                cv2.sepFilter2D(flat[i], -1, kx, ky, dst=moved[i], anchor=anchor, borderType=cv2.BORDER_REFLECT)
             flat = moved
         if whole:
             n = flat.shape[axis]
@@ -654,15 +637,8 @@ def cost_volume(
     elif out.shape != shape or out.dtype != np.float32:
         raise ValueError(f"out must be float32 {shape}, not {out.dtype} {out.shape}")
     if len(candidates) and sampling == "phase":
-        _phase_volume(
-            bands,
-            channel_shifts(aperture),
-            _phase_groups(channel_shifts(aperture), candidates),
-            window_px,
-            noise_floor,
-            out,
-            shifted,
-        )
+        shifts = channel_shifts(aperture)
+        _phase_volume(bands, shifts, _phase_groups(shifts, candidates), window_px, noise_floor, out, shifted)
         return out
     if len(candidates):
         _maps(
@@ -685,6 +661,7 @@ def _phase_volume(bands, shifts, groups, window_px, noise_floor, out, shifted=No
     that keeps the shifted bands by base for the next call on the same bands (a search made in chunks)."""
     empty = _noise_arrays(None, bands)
     for indices, base, multiples, spacing in groups:
+        whole = np.round(spacing * shifts)  # each channel's whole-pixel move per multiple
         key = round(base, 9)
         moved = shifted.get(key) if shifted is not None else None
         if moved is None:
@@ -693,7 +670,6 @@ def _phase_volume(bands, shifts, groups, window_px, noise_floor, out, shifted=No
                 moved[:, c] = shift_band_limited(bands[:, c], base * shifts[c, 0], base * shifts[c, 1])
             if shifted is not None:
                 shifted[key] = moved
-        whole = np.round(spacing * shifts)
         _maps(
             moved,
             whole,
@@ -766,19 +742,21 @@ def _phase_maps(bands, shifts, maps, window_px, noise_floor, out):
                     sampled[k - first, :, c] = bands[:, c]
                 else:
                     _gather_phased(moved, along, by, maps[k], sampled[k - first, :, c])
-        _presampled_maps(sampled[: last - first], int(window_px) // 2, float(noise_floor) ** 2, out[first:last])
+        _presampled_maps(
+            sampled[: last - first],
+            int(window_px) // 2,
+            float(noise_floor) ** 2,
+            *_noise_arrays(None, bands),
+            out[first:last],
+        )
 
 
 @nb.njit(cache=True, parallel=True)
-def _presampled_maps(sampled: np.ndarray, radius: int, eps: float, out: np.ndarray) -> None:
-    """out[k] = the cost map of the bands sampled[k] (B, 3, H, W) as they stand (already moved); one map per
-    thread."""
+def _presampled_maps(sampled, radius, eps, variance, gain, rho, signal_rho, out) -> None:
+    """out[k] = the cost map of the bands sampled[k] (B, 3, H, W) as they stand (already moved; the noise arrays
+    `_noise_arrays(None, ...)`'s: no noise model); one map per thread."""
     zeros = np.zeros((3, 2))
     none = np.zeros((0, sampled.shape[4]), np.float32)
-    variance = np.zeros((0, 1, 1), np.float32)
-    gain = np.zeros(1)
-    rho = np.zeros((1, 2, 3))
-    signal_rho = np.zeros((1, 3, 2, 3))
     for k in nb.prange(out.shape[0]):
         _cost_map(sampled[k], zeros, 0.0, none, radius, eps, out[k], False, variance, gain, rho, signal_rho)
 
