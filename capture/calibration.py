@@ -139,22 +139,30 @@ def nominal_lens(profile: CameraProfile, disparity_offset_px: float = 0.0) -> Le
 
 
 def measure_file(
-    path: Path, profile: CameraProfile, max_disparity_px: float = 24.0
+    path: Path, profile: CameraProfile, max_disparity_px: float = 24.0, crosstalk: np.ndarray | None = None
 ) -> tuple[float, float, float, float, int]:
     """(disparity in the file's mosaic px, in profile px, across px, correlation, mosaic height) of a shot.
 
-    `max_disparity_px` (pixels of the profile's pitch) bounds the search.
+    `max_disparity_px` (pixels of the profile's pitch) bounds the search. `crosstalk` (sensor channel <- filter,
+    `measure_sweep_crosstalk`): taken out of the planes first; left in, the faint copy of each filter's image in
+    the other channels pulls the measured disparity towards zero (4-5 % at 2-3 px on the simulated bench).
     """
     from mca.capture.raw import read_raw
+    from mca.processing.calibration import BAYER_RED_FROM_BLUE_PX, unmix_sites
+    from mca.processing.pipeline import RGGB_HALF_RES_OFFSETS_PX
 
     frame = read_raw(path)
     planes = frame.planes
+    bayer_offset_px = BAYER_RED_FROM_BLUE_PX if frame.half_resolution else (0.0, 0.0)
+    if crosstalk is not None:  # unmixed where every channel is sampled at the same place, then moved back
+        planes = unmix_sites(planes, crosstalk, RGGB_HALF_RES_OFFSETS_PX if frame.half_resolution else None)
     height = int(planes.shape[0] * 2) if frame.half_resolution else int(planes.shape[0])
     to_profile = (profile.height_px or height) / height  # a reduced image has a proportionally larger pitch
     est = target_disparity_px(
         planes[..., 0],
         planes[..., 2],
         baseline_direction(profile.aperture),
+        bayer_offset_px=bayer_offset_px,
         max_disparity_px=max_disparity_px / to_profile + 4.0,
     )
     return est.disparity_px, est.disparity_px * to_profile, est.across_px, est.correlation, height
@@ -263,6 +271,50 @@ def run_sweep(
     return SweepOutcome(points, shot)
 
 
+def measure_sweep_crosstalk(
+    points: list[CalibrationPoint],
+    directory: Path,
+    profile: CameraProfile,
+    log: Callable[[str], None] = lambda m: None,
+) -> tuple[np.ndarray | None, int]:
+    """The crosstalk of the camera and lens (sensor channel <- filter) from the sweep's shots, and how many
+    shots gave it: `processing.calibration.measure_leak` on each shot whose channels show the target at least
+    `MIN_LEAK_SEPARATION_PX` apart (the ends of the sweep, away from focus), the median of those; (None, 0)
+    when no shot is that far from focus (sweep farther, or give the profile's own `aperture.crosstalk`)."""
+    from mca.capture.raw import RawReadError, read_raw
+    from mca.processing.calibration import MIN_LEAK_SEPARATION_PX, combine_leaks, measure_leak
+    from mca.processing.pipeline import RGGB_HALF_RES_OFFSETS_PX
+
+    nominal = nominal_lens(profile)
+    moves = [np.asarray(profile.aperture.shift_per_disparity(c), np.float64) for c in ("red", "green", "blue")]
+    closest = min(float(np.hypot(*(moves[i] - moves[j]))) for i in range(3) for j in range(i + 1, 3))
+    estimates = []
+    for point in points:
+        # shots the nominal lens puts too near focus are not read: their closest two channels are less than the
+        # minimum apart even in mosaic pixels (half-resolution planes halve it: those are read, then dropped)
+        mosaic_px = (
+            abs(float(nominal.disparity_px(point.distance_mm)))
+            * point.mosaic_height_px
+            / (profile.height_px or point.mosaic_height_px)
+        )
+        if mosaic_px * closest < MIN_LEAK_SEPARATION_PX:
+            continue
+        path = Path(directory) / point.file_name
+        try:
+            frame = read_raw(path)
+            offsets = RGGB_HALF_RES_OFFSETS_PX if frame.half_resolution else None
+            estimate = measure_leak(frame.planes, channel_offsets_px=offsets)
+        except (RawReadError, OSError, ValueError) as exc:
+            log(f"crosstalk: {path.name} skipped ({exc})")
+            continue
+        estimates.append(estimate)
+        usable = estimate.separation_px >= MIN_LEAK_SEPARATION_PX
+        verdict = "" if usable else f": too close to read ({MIN_LEAK_SEPARATION_PX:g} px needed)"
+        log(f"crosstalk: {path.name}  channels {estimate.separation_px:.1f} px apart{verdict}")
+    usable = [e for e in estimates if e.separation_px >= MIN_LEAK_SEPARATION_PX]
+    return combine_leaks(usable), len(usable)
+
+
 # --- the simulated bench -------------------------------------------------------------------------------------
 
 
@@ -273,17 +325,27 @@ class SimDeviation:
     baseline_factor: float = 1.03  # effective d_a = 1.03 x nominal
     focus_factor: float = 1.02  # d_ls chosen so that the focus distance is 1.02 x nominal
     disparity_offset_px: float = 0.3  # red-blue misregistration, pixels of the profile's pitch
+    leak: float = 0.0  # crosstalk: each sensor channel takes this share from the other two filters (half each)
 
     @classmethod
     def parse(cls, text: str) -> SimDeviation:
-        """`BASELINE,FOCUS,OFFSET`, e.g. `1.03,1.02,0.3`."""
+        """`BASELINE,FOCUS,OFFSET[,LEAK]`, e.g. `1.03,1.02,0.3` or `1.03,1.02,0.3,0.06`."""
         try:
             values = [float(v) for v in text.split(",")]
         except ValueError:
             values = []
-        if len(values) != 3 or values[0] <= 0 or values[1] <= 0:
-            raise ValueError(f"--sim-deviation must be BASELINE_FACTOR,FOCUS_FACTOR,OFFSET_PX, got {text!r}")
+        leak_ok = len(values) != 4 or 0.0 <= values[3] < 0.5
+        if len(values) not in (3, 4) or values[0] <= 0 or values[1] <= 0 or not leak_ok:
+            raise ValueError(
+                f"--sim-deviation must be BASELINE_FACTOR,FOCUS_FACTOR,OFFSET_PX[,LEAK] (LEAK in [0, 0.5)), got {text!r}"
+            )
         return cls(*values)
+
+    def crosstalk(self) -> tuple[tuple[float, float, float], ...] | None:
+        """The simulated sensor's crosstalk (sensor channel <- filter), None without a leak."""
+        from mca.capture.simulate_app import crosstalk_matrix
+
+        return crosstalk_matrix(self.leak)
 
     def truth(self, profile: CameraProfile) -> LensModel:
         nominal = nominal_lens(profile)
@@ -319,6 +381,11 @@ class SimBench:
             baseline_factor=deviation.baseline_factor,
             sensor_distance_factor=self.truth.sensor_distance_mm / nominal.sensor_distance_mm,
         )
+        leaking = deviation.crosstalk()
+        if leaking is not None:  # the sensor takes some of every filter's light in every channel
+            self.optics = dataclasses.replace(
+                self.optics, aperture=dataclasses.replace(self.optics.aperture, crosstalk=leaking)
+            )
         self.seed = seed
         self.rail_runner: Any = None
         self.distances_shot_mm: list[float] = []
@@ -380,10 +447,17 @@ def _toml_value(value: Any) -> str:
 
 
 def calibrated_profile_toml(
-    profile: CameraProfile, fit: CalibrationFit, plan: SweepPlan, *, shots_dir: str, name: str | None = None
+    profile: CameraProfile,
+    fit: CalibrationFit,
+    plan: SweepPlan,
+    *,
+    shots_dir: str,
+    name: str | None = None,
+    crosstalk: np.ndarray | None = None,
 ) -> str:
     """A profile TOML: the profile with the fitted d_ls and filter centres scaled to the fitted d_a, plus a
-    `[calibration]` table (date, sweep, residuals, sigmas) that the profile loader ignores."""
+    `[calibration]` table (date, sweep, residuals, sigmas) that the profile loader ignores. `crosstalk`: the
+    measured one (`measure_sweep_crosstalk`) replaces the profile's `aperture.crosstalk`."""
     fitted = fit.fitted
     aperture = scaled_aperture(profile.aperture, fitted.filter_centre_distance_mm)
     lens = profile.lens
@@ -415,7 +489,10 @@ def calibrated_profile_toml(
         lens.f_number is None or abs(lens.focal_length_mm / lens.f_number - profile.aperture.diameter_mm) > 1e-9
     ):
         lines.append(f"diameter_mm = {_toml_value(profile.aperture.diameter_mm)}")
-    if aperture.crosstalk is not None:
+    if crosstalk is not None:
+        rows = [[round(float(v), 5) for v in row] for row in crosstalk]
+        lines.append(f"crosstalk = {_toml_value(rows)}   # measured on the sweep's shots")
+    elif aperture.crosstalk is not None:
         lines.append(f"crosstalk = {_toml_value([list(r) for r in aperture.crosstalk])}")
     sigma = fit.sigma
     lines += [
@@ -482,6 +559,7 @@ class CalibrationRequest:
     feed_mm_per_min: float | None = None
     sim_deviation: str = "1.03,1.02,0.3"
     sim_scale: float = 0.25
+    crosstalk: bool = True  # measure the crosstalk on the shots far from focus, and take it out before the fit
 
 
 @dataclass
@@ -519,6 +597,10 @@ class CalibrationRun:
     plot: np.ndarray  # the fit plot (BGR), as written to `plot_path`
     plot_path: Path
     model_error_mm: float | None = None  # simulated bench: the fitted profile's worst depth error over the sweep
+    crosstalk: np.ndarray | None = None  # measured (sensor channel <- filter, unit diagonal), None: not measured
+    crosstalk_shots: int = 0  # how many shots it was measured on
+    crosstalk_applied: bool = False  # taken out before the fit and written into the profile
+    residual_without_crosstalk_px: float | None = None  # the fit's residual rms with the crosstalk left in
 
     PARAMETERS = ("filter_centre_distance_mm", "sensor_distance_mm", "focus_distance_mm", "disparity_offset_px")
     LABELS = ("d_a (red-blue) mm", "d_ls mm", "focus distance mm", "disparity offset px (fixed)")
@@ -560,7 +642,46 @@ class CalibrationRun:
                 "depth error of the fitted profile against the simulated lens over the sweep: "
                 f"{self.model_error_mm:.3f} mm max"
             )
+        lines += self.crosstalk_lines()
         lines.append(f"wrote {self.setup.request.out} and {self.plot_path}")
+        return lines
+
+    def sim_crosstalk(self) -> np.ndarray | None:
+        """Simulated bench: the crosstalk it rendered, columns scaled to a unit diagonal as measured."""
+        bench = self.setup.bench
+        leaking = bench.deviation.crosstalk() if bench is not None else None
+        if leaking is None:
+            return None if bench is None else np.eye(3)
+        matrix = np.asarray(leaking, np.float64)
+        return matrix / np.diag(matrix)[None, :]
+
+    def crosstalk_lines(self) -> list[str]:
+        """The report's crosstalk: not measured (and why), or the matrix and whether it was taken out."""
+        if not self.setup.request.crosstalk:
+            return ["crosstalk: not measured (--no-crosstalk)"]
+        if self.crosstalk is None:
+            return [
+                "crosstalk: not measured: no shot was far enough from focus for the channels' images to part "
+                "(sweep farther from focus, or give it in the profile's aperture.crosstalk)"
+            ]
+        with_rms, without_rms = self.fit.residual_rms_px, self.residual_without_crosstalk_px
+        if self.crosstalk_applied:
+            verdict = (
+                f"taken out before the fit and written into the profile (residual {with_rms:.4f} px; "
+                f"{without_rms:.4f} px left in)"
+            )
+        else:
+            verdict = (
+                f"left in and not written: taking it out does not fit the sweep better ({without_rms:.4f} px left "
+                f"in); it is below what these shots can measure"
+            )
+        lines = [f"crosstalk (sensor channel <- filter) from {self.crosstalk_shots} shot(s), {verdict}:"]
+        truth = self.sim_crosstalk()
+        for name, row, k in zip(("red", "green", "blue"), self.crosstalk, range(3)):
+            text = f"  {name:6s}" + "".join(f"{v:9.4f}" for v in row)
+            if truth is not None:
+                text += "   sim truth" + "".join(f"{v:9.4f}" for v in truth[k])
+            lines.append(text)
         return lines
 
     def document(self) -> dict[str, Any]:
@@ -582,6 +703,11 @@ class CalibrationRun:
                     for name, row in zip(self.PARAMETERS, rows)
                 },
                 "sim_model_error_mm": self.model_error_mm,
+                "crosstalk": None if self.crosstalk is None else self.crosstalk.tolist(),
+                "crosstalk_shots": self.crosstalk_shots,
+                "crosstalk_applied": self.crosstalk_applied,
+                "residual_without_crosstalk_px": self.residual_without_crosstalk_px,
+                "sim_crosstalk": None if (truth := self.sim_crosstalk()) is None else truth.tolist(),
             }
         )
 
@@ -651,11 +777,30 @@ def run_calibration(setup: CalibrationSetup, log: Callable[[str], None] = lambda
     except RailError as exc:
         raise CalibrationError(f"{exc} Nothing was shot at this run's remaining positions; rerun to resume.") from exc
     points = outcome.points
-    try:
-        fit = fit_lens([p.distance_mm for p in points], [p.disparity_px for p in points], setup.nominal)
-    except CalibrationFitError as exc:
-        raise CalibrationError(f"{exc} ({len(points)} points in {setup.directory})") from exc
-    text = calibrated_profile_toml(setup.profile, fit, setup.plan, shots_dir=str(setup.directory))
+
+    def lens_fit(measured: list[CalibrationPoint]) -> CalibrationFit:
+        try:
+            return fit_lens([p.distance_mm for p in measured], [p.disparity_px for p in measured], setup.nominal)
+        except CalibrationFitError as exc:
+            raise CalibrationError(f"{exc} ({len(measured)} points in {setup.directory})") from exc
+
+    fit = lens_fit(points)
+    crosstalk, crosstalk_shots, without_rms, applied = None, 0, None, False
+    if request.crosstalk:
+        crosstalk, crosstalk_shots = measure_sweep_crosstalk(points, setup.directory, setup.profile, log)
+    if crosstalk is not None:
+        # the leak is taken out only when the sweep then fits the lens model better: its copies bend the
+        # measured disparities near focus, which the model cannot follow; a leak below what the shots can
+        # measure makes the fit worse when taken out, and is left in (and not written into the profile)
+        unmixed = _remeasured(points, setup, crosstalk, log)
+        unmixed_fit = lens_fit(unmixed)
+        without_rms = fit.residual_rms_px
+        applied = unmixed_fit.residual_rms_px < fit.residual_rms_px
+        if applied:
+            points, fit = unmixed, unmixed_fit
+    text = calibrated_profile_toml(
+        setup.profile, fit, setup.plan, shots_dir=str(setup.directory), crosstalk=crosstalk if applied else None
+    )
     out = request.out
     profile_from_mapping(tomllib.loads(text), str(out))  # the loader accepts what we write
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -668,7 +813,48 @@ def run_calibration(setup: CalibrationSetup, log: Callable[[str], None] = lambda
         grid = np.linspace(min(p.distance_mm for p in points), max(p.distance_mm for p in points), 101)
         fitted = np.asarray(fit.fitted.distance_mm(bench.truth.disparity_px(grid)))
         model_error = float(np.abs(fitted - grid).max())
-    return CalibrationRun(setup, outcome, fit, text, plot, plot_path, model_error)
+    return CalibrationRun(
+        setup, outcome, fit, text, plot, plot_path, model_error, crosstalk, crosstalk_shots, applied, without_rms
+    )
+
+
+def _remeasured(
+    points: list[CalibrationPoint], setup: CalibrationSetup, crosstalk: np.ndarray, log: Callable[[str], None]
+) -> list[CalibrationPoint]:
+    """The sweep's points with the target's disparity measured again on planes the crosstalk is taken out of
+    (the catalogue keeps what was measured at the shot)."""
+    from mca.capture.raw import RawReadError
+
+    nominal = nominal_lens(setup.profile)
+    span = [nominal.disparity_px(p.distance_mm) for p in points]
+    max_disparity_px = 1.5 * max(abs(float(v)) for v in span) + 8.0  # profile px, as the sweep searched
+    again = []
+    for i, point in enumerate(points, 1):
+        path = setup.directory / point.file_name
+        try:
+            raw_px, disparity, across, correlation, height = measure_file(
+                path, setup.profile, max_disparity_px, crosstalk
+            )
+        except (RawReadError, OSError, ValueError) as exc:
+            raise CalibrationError(
+                f"{path}: could not be measured again with the crosstalk taken out ({exc}); the sweep's "
+                "shots and catalogue are kept: restore the file and rerun, or rerun with --no-crosstalk"
+            ) from exc
+        again.append(
+            dataclasses.replace(
+                point,
+                disparity_raw_px=raw_px,
+                disparity_px=disparity,
+                across_px=across,
+                correlation=correlation,
+                mosaic_height_px=height,
+            )
+        )
+        log(
+            f"crosstalk out: {i}/{len(points)}  {point.position_mm:+8.1f} mm  disparity {point.disparity_px:+8.3f} -> "
+            f"{disparity:+8.3f} px"
+        )
+    return again
 
 
 def record_calibration(run: CalibrationRun, record: Path) -> None:
@@ -689,4 +875,6 @@ def record_calibration(run: CalibrationRun, record: Path) -> None:
             max_depth_error_mm=fit.max_depth_error_mm,
             residuals_px=fit.residuals_px,
             profile=run.profile_text,
+            crosstalk="\n".join(run.crosstalk_lines()),
+            crosstalk_applied=run.crosstalk_applied,
         )

@@ -178,6 +178,141 @@ def target_disparity_px(
     )
 
 
+# --- crosstalk: how much of each filter's light each sensor channel takes ------------------------------------
+
+MIN_LEAK_SEPARATION_PX = 3.0  # a shot measures the leak when every two channels' images are this far apart
+
+
+@dataclass(frozen=True)
+class LeakEstimate:
+    """The crosstalk measured on one shot of a grey textured target (`measure_leak`)."""
+
+    matrix: np.ndarray  # (3, 3) sensor channel <- filter, column k scaled so that channel k takes 1 of filter k
+    separation_px: float  # the smallest distance between two channels' images of the target, px of the planes
+    shifts_px: np.ndarray  # (3, 2) where each channel shows the target, against green (0, 0), px of the planes
+
+
+def _band(plane: np.ndarray, band_px: tuple[float, float]) -> np.ndarray:
+    import cv2
+
+    return cv2.GaussianBlur(plane, (0, 0), band_px[0]) - cv2.GaussianBlur(plane, (0, 0), band_px[1])
+
+
+def measure_leak(
+    planes: np.ndarray,
+    *,
+    crop_fraction: float = 0.6,
+    max_side_px: int = 1024,
+    band_px: tuple[float, float] = (0.8, 2.0),
+    iterations: int = 3,
+    max_shift_px: float = 40.0,
+    channel_offsets_px: Sequence[tuple[float, float]] | None = None,
+) -> LeakEstimate:
+    """Crosstalk from one photograph of a fronto-parallel target with a grey texture T filling the centre.
+
+    Each filter k forms the target's image T(x + s_k), s_k its displacement (0 for green, measured by
+    `plane_shift_px`), and sensor channel c records sum_k M[c, k] g_k T(x + s_k): its own filter's image
+    and faint copies of the others' where those filters put them. Away from focus the three copies are apart,
+    so a least-squares fit of each channel's band-pass plane (a difference of Gaussians of `band_px`) to T
+    moved by s_r, s_g and s_b reads its row of M diag(g). T is estimated as the mean of the three channels,
+    each moved back onto green and scaled to unit spread; it is estimated again from the channels unmixed
+    by the current matrix (`iterations` times), so that the copies in it fade.
+
+    The filters' transmissions g_k and M's columns cannot be told apart, and need not be: unmixing by
+    M diag(g) gives each filter's image times 1 / g_k, and the colour-line cost ignores each channel's
+    scale. The matrix returned has its columns scaled to a unit diagonal. The copies must be apart by more
+    than the texture's grain: `separation_px` says by how much (`MIN_LEAK_SEPARATION_PX` for a usable shot).
+    A coloured texture breaks the model (T differs per channel): the target must be grey.
+
+    `channel_offsets_px`: where each channel's samples sit in its plane's pixel, (dx, dy) per channel
+    (`pipeline.RGGB_HALF_RES_OFFSETS_PX` for the half-resolution planes of an RGGB mosaic; None: co-sited).
+    The channels are first resampled onto the pixel centres (`unmix_sites`): filter k's light in channel c is
+    sampled at c's sites, and mixing samples from different sites leaves copies half a pixel off (a 6 % leak
+    between red and blue read as 5 %).
+    """
+    from mca.processing.cost import shift_band_limited
+
+    planes = np.asarray(planes, dtype=np.float32)
+    if planes.ndim != 3 or planes.shape[2] != 3:
+        raise ValueError(f"measure_leak needs (H, W, 3) planes, got {planes.shape}")
+    if channel_offsets_px is not None:
+        planes = _move_sites(planes, channel_offsets_px, onto_centres=True)
+    shifts = np.zeros((3, 2))
+    for k in (0, 2):
+        dx, dy, _, _ = plane_shift_px(
+            planes[..., 1],
+            planes[..., k],
+            crop_fraction=crop_fraction,
+            search_half_size_px=(max_shift_px, max_shift_px),
+        )
+        shifts[k] = (dx, dy)  # green(x) ~ a k(x - s): k shows the target at x + s where green shows it at x
+    rows, cols = _central_window(planes.shape[:2], crop_fraction, max_side_px)
+    margin = int(np.ceil(np.abs(shifts).max())) + 12  # the band-limited shift's taps and the bands' reach
+    y0, y1 = max(rows.start - margin, 0), min(rows.stop + margin, planes.shape[0])
+    x0, x1 = max(cols.start - margin, 0), min(cols.stop + margin, planes.shape[1])
+    window = np.ascontiguousarray(planes[y0:y1, x0:x1])
+    inner = (slice(rows.start - y0, rows.stop - y0), slice(cols.start - x0, cols.stop - x0))
+    observed = [_band(np.ascontiguousarray(window[..., c]), band_px)[inner].ravel() for c in range(3)]
+    matrix = np.eye(3)
+    for _ in range(iterations):
+        unmixed = (window.reshape(-1, 3) @ np.linalg.inv(matrix).T.astype(np.float32)).reshape(window.shape)
+        texture = np.zeros(window.shape[:2], np.float32)
+        for k in range(3):
+            back = shift_band_limited(
+                _band(np.ascontiguousarray(unmixed[..., k]), band_px), -shifts[k, 0], -shifts[k, 1]
+            )
+            texture += back / max(float(back[inner].std()), 1e-12)
+        design = np.stack([shift_band_limited(texture, sx, sy)[inner].ravel() for sx, sy in shifts], axis=1)
+        for c in range(3):
+            matrix[c] = np.linalg.lstsq(design, observed[c], rcond=None)[0]
+        if np.any(np.diag(matrix) <= 0):
+            raise ValueError("measure_leak: a channel does not follow its own filter's image (is the target grey?)")
+        matrix = matrix / np.diag(matrix)[None, :]
+    separation = min(float(np.hypot(*(shifts[i] - shifts[j]))) for i in range(3) for j in range(i + 1, 3))
+    return LeakEstimate(matrix, separation, shifts)
+
+
+def _move_sites(planes: np.ndarray, offsets_px: Sequence[tuple[float, float]], *, onto_centres: bool) -> np.ndarray:
+    """Each channel's samples moved from where they sit in the pixel (`offsets_px`, (dx, dy) per channel) onto
+    the pixel centres, or back; band-limited (`cost.shift_band_limited`), so that the round trip keeps the
+    position to a thousandth of a pixel (a cubic filter moved the calibration target by 0.03 px)."""
+    from mca.processing.cost import shift_band_limited
+
+    sign = -1.0 if onto_centres else 1.0
+    out = np.empty_like(np.asarray(planes, dtype=np.float32))
+    for c, (dx, dy) in enumerate(offsets_px):
+        out[..., c] = shift_band_limited(np.ascontiguousarray(planes[..., c], np.float32), sign * dx, sign * dy)
+    return out
+
+
+def unmix_sites(
+    planes: np.ndarray, crosstalk: np.ndarray, offsets_px: Sequence[tuple[float, float]] | None
+) -> np.ndarray:
+    """(H, W, 3) planes with the crosstalk (sensor channel <- filter) taken out, each channel's samples left
+    where they were: moved onto the pixel centres (`offsets_px`, e.g. `pipeline.RGGB_HALF_RES_OFFSETS_PX`;
+    None: co-sited already), unmixed there by the inverse matrix, and moved back. What is measured on the
+    channels' own sites afterwards (the calibration target's disparity with the Bayer offset taken out) stays
+    comparable with a shot that has no crosstalk."""
+    matrix = np.asarray(crosstalk, np.float64)
+    if matrix.shape != (3, 3) or abs(np.linalg.det(matrix)) < 1e-6:
+        raise ValueError(f"crosstalk {matrix.tolist()} is not an invertible 3x3 matrix")
+    moved = planes if offsets_px is None else _move_sites(planes, offsets_px, onto_centres=True)
+    h, w, _ = moved.shape
+    unmixed = (moved.reshape(-1, 3) @ np.linalg.inv(matrix).T.astype(np.float32)).reshape(h, w, 3)
+    return unmixed if offsets_px is None else _move_sites(unmixed, offsets_px, onto_centres=False)
+
+
+def combine_leaks(
+    estimates: Sequence[LeakEstimate], min_separation_px: float = MIN_LEAK_SEPARATION_PX
+) -> np.ndarray | None:
+    """The median, entry by entry, of the shots whose channels are at least `min_separation_px` apart; None
+    when no shot is."""
+    usable = [e.matrix for e in estimates if e.separation_px >= min_separation_px]
+    if not usable:
+        return None
+    return np.median(np.stack(usable), axis=0)
+
+
 # --- the lens model and its fit -------------------------------------------------------------------------------
 
 

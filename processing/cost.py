@@ -626,10 +626,12 @@ def cost_volume(
     """(D, H, W) float32 colour-line cost of every pixel at every candidate disparity (px of these planes).
 
     `bands` (B, 3, H, W) from `stack_bands`; `noise_floor` is the band-pass amplitude treated as flat (it
-    regularises the correlations of windows with nothing to align); `sampling` "bspline" or "bilinear" (see
-    the module docstring for which to use when); `noise` (`features.feature_noise` of the planes the bands are
-    of) takes out the noise bias of sampling (module docstring); `out`: a (D, H, W) float32 array to fill
-    (a buffer used again), else a new one is made."""
+    regularises the correlations of windows with nothing to align); `sampling` "bspline", "bilinear" or "phase"
+    (see the module docstring for which to use when); `noise` (`features.feature_noise` of the planes the bands
+    are of) takes out the noise bias of sampling (module docstring); the "phase" sampler keeps the noise's
+    variance at every shift, has no such bias and ignores it. `out`: a (D, H, W) float32 array to fill (a buffer
+    used again), else a new one is made. `shifted`: "phase" sampling only, a dict the caller keeps across the
+    chunks of one search over the same bands, which then shifts them once (`_phase_volume`)."""
     candidates = np.asarray(candidates_px, np.float64)
     shape = (len(candidates),) + bands.shape[2:]
     if out is None:

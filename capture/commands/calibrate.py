@@ -40,7 +40,15 @@ def calibrate(
     ),
     feed: float | None = typer.Option(None, "--feed", help="rail feed, mm/min"),
     sim_deviation: str = typer.Option(
-        "1.03,1.02,0.3", "--sim-deviation", help="simulated lens: BASELINE_FACTOR,FOCUS_FACTOR,OFFSET_PX"
+        "1.03,1.02,0.3",
+        "--sim-deviation",
+        help="simulated lens: BASELINE_FACTOR,FOCUS_FACTOR,OFFSET_PX[,LEAK] (LEAK: crosstalk, e.g. 0.06)",
+    ),
+    crosstalk: bool = typer.Option(
+        True,
+        "--crosstalk/--no-crosstalk",
+        help="measure the crosstalk on the shots far from focus (the target must be grey), take it out before "
+        "the fit and write it into the profile",
     ),
     sim_scale: float = typer.Option(0.25, "--sim-scale", help="simulated render size (fraction of the profile's)"),
     record: Path | None = typer.Option(None, "--record", help="also log the fit into a rerun FILE.rrd"),
@@ -69,6 +77,7 @@ def calibrate(
         feed_mm_per_min=feed,
         sim_deviation=sim_deviation,
         sim_scale=sim_scale,
+        crosstalk=crosstalk,
     )
     try:
         setup = cal.plan_calibration(request)
