@@ -276,11 +276,13 @@ def measure_sweep_crosstalk(
     directory: Path,
     profile: CameraProfile,
     log: Callable[[str], None] = lambda m: None,
-) -> tuple[np.ndarray | None, int]:
-    """The crosstalk of the camera and lens (sensor channel <- filter) from the sweep's shots, and how many
-    shots gave it: `processing.calibration.measure_leak` on each shot whose channels show the target at least
-    `MIN_LEAK_SEPARATION_PX` apart (the ends of the sweep, away from focus), the median of those; (None, 0)
-    when no shot is that far from focus (sweep farther, or give the profile's own `aperture.crosstalk`)."""
+) -> tuple[np.ndarray | None, int, float]:
+    """The crosstalk of the camera and lens (sensor channel <- filter) from the sweep's shots, how many shots
+    gave it and how far apart they are (the largest difference of an entry from the result; 0 for one shot):
+    `processing.calibration.measure_leak` on each shot whose channels show the target at least
+    `MIN_LEAK_SEPARATION_PX` apart (the ends of the sweep, away from focus), the median of those; (None, 0, 0)
+    when no shot is that far from focus (sweep farther, or give the profile's own `aperture.crosstalk`). Shots
+    that disagree by more than a few thousandths point at a coloured target or a bad shot."""
     from mca.capture.raw import RawReadError, read_raw
     from mca.processing.calibration import MIN_LEAK_SEPARATION_PX, combine_leaks, measure_leak
     from mca.processing.pipeline import RGGB_HALF_RES_OFFSETS_PX
@@ -308,11 +310,14 @@ def measure_sweep_crosstalk(
             log(f"crosstalk: {path.name} skipped ({exc})")
             continue
         estimates.append(estimate)
-        usable = estimate.separation_px >= MIN_LEAK_SEPARATION_PX
-        verdict = "" if usable else f": too close to read ({MIN_LEAK_SEPARATION_PX:g} px needed)"
+        apart = estimate.separation_px >= MIN_LEAK_SEPARATION_PX
+        verdict = "" if apart else f": too close to read ({MIN_LEAK_SEPARATION_PX:g} px needed)"
         log(f"crosstalk: {path.name}  channels {estimate.separation_px:.1f} px apart{verdict}")
     usable = [e for e in estimates if e.separation_px >= MIN_LEAK_SEPARATION_PX]
-    return combine_leaks(usable), len(usable)
+    matrix = combine_leaks(usable)
+    if matrix is None:
+        return None, 0, 0.0
+    return matrix, len(usable), float(max(np.abs(e.matrix - matrix).max() for e in usable))
 
 
 # --- the simulated bench -------------------------------------------------------------------------------------
@@ -599,6 +604,7 @@ class CalibrationRun:
     model_error_mm: float | None = None  # simulated bench: the fitted profile's worst depth error over the sweep
     crosstalk: np.ndarray | None = None  # measured (sensor channel <- filter, unit diagonal), None: not measured
     crosstalk_shots: int = 0  # how many shots it was measured on
+    crosstalk_spread: float = 0.0  # the largest difference of a shot's entry from the result
     crosstalk_applied: bool = False  # taken out before the fit and written into the profile
     residual_without_crosstalk_px: float | None = None  # the fit's residual rms with the crosstalk left in
 
@@ -675,7 +681,10 @@ class CalibrationRun:
                 f"left in and not written: taking it out does not fit the sweep better ({without_rms:.4f} px left "
                 f"in); it is below what these shots can measure"
             )
-        lines = [f"crosstalk (sensor channel <- filter) from {self.crosstalk_shots} shot(s), {verdict}:"]
+        shots = f"{self.crosstalk_shots} shot(s)"
+        if self.crosstalk_shots > 1:
+            shots += f" agreeing within {self.crosstalk_spread:.4f}"
+        lines = [f"crosstalk (sensor channel <- filter) from {shots}, {verdict}:"]
         truth = self.sim_crosstalk()
         for name, row, k in zip(("red", "green", "blue"), self.crosstalk, range(3)):
             text = f"  {name:6s}" + "".join(f"{v:9.4f}" for v in row)
@@ -705,6 +714,7 @@ class CalibrationRun:
                 "sim_model_error_mm": self.model_error_mm,
                 "crosstalk": None if self.crosstalk is None else self.crosstalk.tolist(),
                 "crosstalk_shots": self.crosstalk_shots,
+                "crosstalk_spread": self.crosstalk_spread,
                 "crosstalk_applied": self.crosstalk_applied,
                 "residual_without_crosstalk_px": self.residual_without_crosstalk_px,
                 "sim_crosstalk": None if (truth := self.sim_crosstalk()) is None else truth.tolist(),
@@ -785,9 +795,9 @@ def run_calibration(setup: CalibrationSetup, log: Callable[[str], None] = lambda
             raise CalibrationError(f"{exc} ({len(measured)} points in {setup.directory})") from exc
 
     fit = lens_fit(points)
-    crosstalk, crosstalk_shots, without_rms, applied = None, 0, None, False
+    crosstalk, crosstalk_shots, spread, without_rms, applied = None, 0, 0.0, None, False
     if request.crosstalk:
-        crosstalk, crosstalk_shots = measure_sweep_crosstalk(points, setup.directory, setup.profile, log)
+        crosstalk, crosstalk_shots, spread = measure_sweep_crosstalk(points, setup.directory, setup.profile, log)
     if crosstalk is not None:
         # the leak is taken out only when the sweep then fits the lens model better: its copies bend the
         # measured disparities near focus, which the model cannot follow; a leak below what the shots can
@@ -814,7 +824,18 @@ def run_calibration(setup: CalibrationSetup, log: Callable[[str], None] = lambda
         fitted = np.asarray(fit.fitted.distance_mm(bench.truth.disparity_px(grid)))
         model_error = float(np.abs(fitted - grid).max())
     return CalibrationRun(
-        setup, outcome, fit, text, plot, plot_path, model_error, crosstalk, crosstalk_shots, applied, without_rms
+        setup,
+        outcome,
+        fit,
+        text,
+        plot,
+        plot_path,
+        model_error,
+        crosstalk,
+        crosstalk_shots,
+        spread,
+        applied,
+        without_rms,
     )
 
 
