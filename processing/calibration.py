@@ -226,9 +226,9 @@ def measure_leak(
 
     `channel_offsets_px`: where each channel's samples sit in its plane's pixel, (dx, dy) per channel
     (`pipeline.RGGB_HALF_RES_OFFSETS_PX` for the half-resolution planes of an RGGB mosaic; None: co-sited).
-    The channels are first resampled onto the pixel centres (`unmix_sites`): filter k's light in channel c is
-    sampled at c's sites, and mixing samples from different sites leaves copies half a pixel off (a 6 % leak
-    between red and blue read as 5 %).
+    The channels are first moved onto the pixel centres by a band-limited shift (as `unmix_sites` does): filter
+    k's light in channel c is sampled at c's sites, and mixing samples from different sites leaves copies half
+    a pixel off (a 6 % leak between red and blue read as 5 %).
     """
     from mca.processing.cost import shift_band_limited
 
@@ -255,7 +255,7 @@ def measure_leak(
     observed = [_band(np.ascontiguousarray(window[..., c]), band_px)[inner].ravel() for c in range(3)]
     matrix = np.eye(3)
     for _ in range(iterations):
-        unmixed = (window.reshape(-1, 3) @ np.linalg.inv(matrix).T.astype(np.float32)).reshape(window.shape)
+        unmixed = unmix_sites(window, matrix, None)
         texture = np.zeros(window.shape[:2], np.float32)
         for k in range(3):
             back = shift_band_limited(
