@@ -182,7 +182,7 @@ def _cost_hwd(
         weight = inputs.signal_weight(params.window_px, params.half_weight_snr, params.signal_channels)
     out = np.empty((h, w, count), np.float32)
     buffer = np.empty((min(_CHUNK, count), h, w), np.float32)
-    shifted: dict = {}  # "phase" sampling: the bands shifted once for every chunk
+    shifted: dict | None = {} if params.sampling == "phase" else None  # the bands shifted once for every chunk
     for first in range(0, count, _CHUNK):
         last = min(first + _CHUNK, count)
         fine = _volume_dhw(planes, aperture, candidates[first:last], params, inputs, buffer[: last - first], shifted)

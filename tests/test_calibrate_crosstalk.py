@@ -139,6 +139,17 @@ def test_calibrate_measures_the_leak_and_takes_it_out_only_when_it_helps(tmp_pat
         assert written is not None and np.allclose(written, measured, atol=1e-4)
         entities = rrd_print(tmp_path / "cal.rrd")  # the report's matrix in the recording, for review
         assert "TextDocument" in entities.get("/shot/stages/calibration/crosstalk", set()), entities.keys()
+        # a shot spoilt since the sweep is skipped with its name, and the others still read
+        sweep = tmp_path / "cal-sweep"
+        store = cal.CalibrationStore(sweep / "catalog.sqlite")
+        points = store.points()
+        store.close()
+        first = sweep / points[0].file_name  # the nearest position: the farthest from focus
+        first.write_bytes(first.read_bytes()[:1000])
+        said: list[str] = []
+        matrix, shots, _ = cal.measure_sweep_crosstalk(points, sweep, PROFILE, said.append)
+        assert any(points[0].file_name in line and "skipped" in line for line in said), said
+        assert shots == document["crosstalk_shots"] - 1 and (matrix is None) == (shots == 0)
     else:
         assert not document["crosstalk_applied"] and written is None
         assert document["sim_model_error_mm"] < 0.1
