@@ -174,6 +174,14 @@ class SweepOutcome:
     shot_positions_mm: list[float]  # positions shot in this run (resumed ones excluded)
 
 
+def _search_bound_px(profile: CameraProfile, plan: SweepPlan) -> float:
+    """How far (profile px) a shot's disparity is searched: half as far again as the nominal lens puts the
+    farthest position of the sweep, plus 8 px."""
+    nominal = nominal_lens(profile)
+    span = [nominal.disparity_px(plan.distance_mm(plan.rail_mm(s))) for s in plan.positions_mm]
+    return 1.5 * max(abs(float(v)) for v in span) + 8.0
+
+
 def run_sweep(
     plan: SweepPlan,
     profile: CameraProfile,
@@ -212,9 +220,7 @@ def run_sweep(
     todo = [s for s in plan.positions_mm if round(s, 6) not in done]
     if done:
         log(f"resuming: {len(done)} position(s) already measured in {store.path}, {len(todo)} to go")
-    nominal = nominal_lens(profile)
-    span = [nominal.disparity_px(plan.distance_mm(plan.rail_mm(s))) for s in plan.positions_mm]
-    max_disparity_px = 1.5 * max(abs(float(v)) for v in span) + 8.0  # profile px
+    max_disparity_px = _search_bound_px(profile, plan)
     shot: list[float] = []
     session = TetherSession(camera_factory, out_dir, log=log) if todo else None
     position = math.nan
@@ -284,12 +290,11 @@ def measure_sweep_crosstalk(
     when no shot is that far from focus (sweep farther, or give the profile's own `aperture.crosstalk`). Shots
     that disagree by more than a few thousandths point at a coloured target or a bad shot."""
     from mca.capture.raw import RawReadError, read_raw
-    from mca.processing.calibration import MIN_LEAK_SEPARATION_PX, combine_leaks, measure_leak
+    from mca.processing.calibration import MIN_LEAK_SEPARATION_PX, closest_pair_px, combine_leaks, measure_leak
     from mca.processing.pipeline import RGGB_HALF_RES_OFFSETS_PX
 
     nominal = nominal_lens(profile)
-    moves = [np.asarray(profile.aperture.shift_per_disparity(c), np.float64) for c in ("red", "green", "blue")]
-    closest = min(float(np.hypot(*(moves[i] - moves[j]))) for i in range(3) for j in range(i + 1, 3))
+    closest = closest_pair_px(np.array([profile.aperture.shift_per_disparity(c) for c in ("red", "green", "blue")]))
     estimates = []
     for point in points:
         # shots the nominal lens puts too near focus are not read: their closest two channels are less than the
@@ -846,9 +851,7 @@ def _remeasured(
     (the catalogue keeps what was measured at the shot)."""
     from mca.capture.raw import RawReadError
 
-    nominal = nominal_lens(setup.profile)
-    span = [nominal.disparity_px(p.distance_mm) for p in points]
-    max_disparity_px = 1.5 * max(abs(float(v)) for v in span) + 8.0  # profile px, as the sweep searched
+    max_disparity_px = _search_bound_px(setup.profile, setup.plan)  # as the sweep searched
     again = []
     for i, point in enumerate(points, 1):
         path = setup.directory / point.file_name

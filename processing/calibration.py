@@ -268,8 +268,14 @@ def measure_leak(
         if np.any(np.diag(matrix) <= 0):
             raise ValueError("measure_leak: a channel does not follow its own filter's image (is the target grey?)")
         matrix = matrix / np.diag(matrix)[None, :]
-    separation = min(float(np.hypot(*(shifts[i] - shifts[j]))) for i in range(3) for j in range(i + 1, 3))
-    return LeakEstimate(matrix, separation, shifts)
+    return LeakEstimate(matrix, closest_pair_px(shifts), shifts)
+
+
+def closest_pair_px(points: np.ndarray) -> float:
+    """The smallest distance between two of the (N, 2) `points`: how far apart the closest two channels' images
+    are, given where each shows the target (or how far each moves per pixel of disparity)."""
+    points = np.asarray(points, np.float64)
+    return min(float(np.hypot(*(points[i] - points[j]))) for i in range(len(points)) for j in range(i + 1, len(points)))
 
 
 def _move_sites(planes: np.ndarray, offsets_px: Sequence[tuple[float, float]], *, onto_centres: bool) -> np.ndarray:
@@ -293,12 +299,13 @@ def unmix_sites(
     None: co-sited already), unmixed there by the inverse matrix, and moved back. What is measured on the
     channels' own sites afterwards (the calibration target's disparity with the Bayer offset taken out) stays
     comparable with a shot that has no crosstalk."""
+    from mca.processing.pipeline import remove_crosstalk  # the inverse and its check, as the pipeline's
+
     matrix = np.asarray(crosstalk, np.float64)
-    if matrix.shape != (3, 3) or abs(np.linalg.det(matrix)) < 1e-6:
-        raise ValueError(f"crosstalk {matrix.tolist()} is not an invertible 3x3 matrix")
+    if matrix.shape != (3, 3):
+        raise ValueError(f"crosstalk {matrix.tolist()} is not a 3x3 matrix")
     moved = planes if offsets_px is None else _move_sites(planes, offsets_px, onto_centres=True)
-    h, w, _ = moved.shape
-    unmixed = (moved.reshape(-1, 3) @ np.linalg.inv(matrix).T.astype(np.float32)).reshape(h, w, 3)
+    unmixed = remove_crosstalk(moved, tuple((float(a), float(b), float(c)) for a, b, c in matrix))
     return unmixed if offsets_px is None else _move_sites(unmixed, offsets_px, onto_centres=False)
 
 
