@@ -422,6 +422,9 @@ def _refine_stage(run: _Run) -> None:
             noise=noise,
             inputs=run.inputs,
         )
+    # nothing after the refinement reads the cost's feature bands: let them go before the full-size stages
+    # (at 20 MP about 100 MB, and the process's peak is in the stages that follow, beside the outputs' encoding)
+    del run.inputs
     run.sketch = _refined_sketch(run.sketch, run.refinement, run.params.sketch.occlusion_margin_px)
     run.recorder.record(
         "refine",

@@ -142,16 +142,20 @@ def _columns_pass(cost, guide, p1, p2, alpha, floor, out, dx, assign):
 def aggregate(
     cost_hwd: np.ndarray, guide: np.ndarray, p1: float, p2: float, alpha: float = 0.0, step_floor: float = 0.0
 ) -> np.ndarray:
-    """Sum over the eight paths of the semi-global aggregation of `cost_hwd` (H, W, D) float32.
+    """Sum over the eight paths of the semi-global aggregation of `cost_hwd` (H, W, D), float32 (H, W, D).
+
+    `cost_hwd` float32, or uint16 (the dense search's costs times `dense.COST_LEVELS`, penalties scaled alike:
+    read as it is, not converted; at 20 MP a float32 copy would be another quarter of a gigabyte).
 
     `guide` (H, W) or (H, W, C) float32 image whose steps lower P2 (object boundaries; of a colour guide, the
     largest channel's step: two colours of one brightness still meet at an edge); `alpha` scales that effect
     (0: constant P2); steps up to `step_floor` (what noise makes) do not count."""
-    cost = np.ascontiguousarray(cost_hwd, dtype=np.float32)
+    dtype = np.uint16 if cost_hwd.dtype == np.uint16 else np.float32
+    cost = np.ascontiguousarray(cost_hwd, dtype=dtype)
     guide = np.ascontiguousarray(guide, dtype=np.float32)
     if guide.ndim == 2:
         guide = guide[..., None]
-    out = np.empty_like(cost)  # every value written by the first pass
+    out = np.empty(cost.shape, np.float32)  # every value written by the first pass
     a, q1, q2, f = np.float32(alpha), np.float32(p1), np.float32(p2), np.float32(step_floor)
     _columns_pass(cost, guide, q1, q2, a, f, out, 1, True)
     _columns_pass(cost, guide, q1, q2, a, f, out, -1, False)

@@ -99,9 +99,10 @@ def test_the_coarse_cost_comes_back_up_as_opencv_resizes_it(shape):
 
 def test_the_chunked_volume_is_the_whole_volume_blended():
     """`_cost_hwd` makes the full-size cost `_CHUNK` candidates at a time into one buffer: with more candidates
-    than a chunk, it equals the cost volume made at once and blended with the half-size one."""
+    than a chunk, it equals the cost volume made at once and blended with the half-size one, rounded to
+    `COST_LEVELS` levels (uint16)."""
     from mca.processing.cost import cost_input, cost_volume
-    from mca.processing.dense import _CHUNK, _cost_hwd
+    from mca.processing.dense import _CHUNK, COST_LEVELS, _cost_hwd
 
     shape = (64, 80)
     planes = render_layers([(texture(shape, 2), np.ones(shape, np.float32), 1.5)], shape, APERTURE)
@@ -119,10 +120,10 @@ def test_the_chunked_volume_is_the_whole_volume_blended():
     up = np.stack([cv2.resize(s, (80, 64), interpolation=cv2.INTER_LINEAR) for s in coarse])
     expected = ((fine + 0.5 * up) / 1.5).transpose(1, 2, 0)
     got = _cost_hwd(planes, APERTURE, candidates, params, inputs)
-    assert got.shape == (64, 80, len(candidates)) and got.flags.c_contiguous
-    assert np.abs(got - expected).max() < 1e-5
+    assert got.shape == (64, 80, len(candidates)) and got.flags.c_contiguous and got.dtype == np.uint16
+    assert np.abs(got - expected * COST_LEVELS).max() <= 0.5 + 1e-5 * COST_LEVELS  # rounded; float32 sums
     alone = _cost_hwd(planes, APERTURE, candidates, DenseParams(coarse_weight=0.0), inputs)
-    assert np.array_equal(alone, fine.transpose(1, 2, 0))
+    assert np.array_equal(alone, np.floor(fine.transpose(1, 2, 0).astype(np.float64) * COST_LEVELS + 0.5))
 
 
 @pytest.mark.parametrize("seed", [1, 3])

@@ -51,6 +51,21 @@ def test_eight_paths_equal_the_written_out_recurrence():
         assert np.allclose(got, reference(cost, guide, p1, p2, alpha), atol=1e-4)
 
 
+def test_a_uint16_volume_is_read_as_it_is_with_the_penalties_scaled_alike():
+    """The dense search hands the aggregation its costs times 65535 as uint16 (`dense.COST_LEVELS`), penalties
+    scaled alike: the recurrence over the integer costs, in floating point (levels near 65535 plus a penalty
+    would wrap in uint16 arithmetic)."""
+    rng = np.random.default_rng(5)
+    levels = 65535.0
+    cost = np.floor(rng.random((7, 9, 5)) * levels + 0.5).astype(np.uint16)
+    cost[0, :, 0] = 65535  # the top of the range, where uint16 arithmetic would wrap
+    guide = rng.random((7, 9)).astype(np.float32)
+    got = aggregate(cost, guide, 0.3 * levels, 2.0 * levels, 3.0)
+    assert got.dtype == np.float32
+    expected = reference(cost.astype(np.float64), guide, 0.3 * levels, 2.0 * levels, 3.0)
+    assert np.allclose(got, expected, rtol=1e-6, atol=0.05)
+
+
 def test_a_colour_guide_counts_its_largest_channel_step_less_the_noise_floor():
     rng = np.random.default_rng(3)
     cost = rng.random((7, 9, 5)).astype(np.float32)
