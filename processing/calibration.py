@@ -305,7 +305,12 @@ def unmix_sites(
     if matrix.shape != (3, 3):
         raise ValueError(f"crosstalk {matrix.tolist()} is not a 3x3 matrix")
     moved = planes if offsets_px is None else _move_sites(planes, offsets_px, onto_centres=True)
-    unmixed = remove_crosstalk(moved, tuple((float(a), float(b), float(c)) for a, b, c in matrix))
+    unmixed = remove_crosstalk(
+        moved,
+        tuple((float(a), float(b), float(c)) for a, b, c in matrix),
+        "the crosstalk",
+        "measure it again on a grey, textured target far from focus (`mca calibrate`), or leave it out",
+    )
     return unmixed if offsets_px is None else _move_sites(unmixed, offsets_px, onto_centres=False)
 
 

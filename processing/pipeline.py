@@ -182,16 +182,23 @@ def align_channel_samples(planes: np.ndarray, offsets_px: tuple[tuple[float, flo
     return cv2.merge(parallel_map(one, range(3)))
 
 
-def remove_crosstalk(planes: np.ndarray, crosstalk: tuple[tuple[float, float, float], ...]) -> np.ndarray:
+def remove_crosstalk(
+    planes: np.ndarray,
+    crosstalk: tuple[tuple[float, float, float], ...],
+    what: str = "aperture.crosstalk",
+    remedy: str = "check the profile's matrix",
+) -> np.ndarray:
     """The filter images behind (H, W, 3) sensor planes mixed by `crosstalk` (sensor channel <- filter, the
-    profile's `aperture.crosstalk`): each pixel's colour times the inverse matrix.
+    profile's `aperture.crosstalk`): each pixel's colour times the inverse matrix. A matrix that cannot be
+    inverted is a ValueError naming it as `what`, with `remedy` (a measured matrix has another remedy than a
+    profile's).
 
     Leaked light is a faint copy of another filter's image at that filter's displacement: left in, it pulls each
     channel towards the others and every disparity towards zero (5 % less at 6 % leak on the rendered scenes).
     """
     matrix = np.asarray(crosstalk, np.float64)
     if abs(np.linalg.det(matrix)) < 1e-6:
-        raise ValueError(f"aperture.crosstalk {matrix.tolist()} cannot be inverted: check the profile's matrix")
+        raise ValueError(f"{what} {matrix.tolist()} cannot be inverted: {remedy}")
     unmix = np.linalg.inv(matrix).astype(np.float32)
     h, w, _ = planes.shape
     return np.ascontiguousarray((planes.reshape(-1, 3) @ unmix.T).reshape(h, w, 3), dtype=np.float32)
