@@ -318,11 +318,8 @@ def measure_sweep_crosstalk(
         apart = estimate.separation_px >= MIN_LEAK_SEPARATION_PX
         verdict = "" if apart else f": too close to read ({MIN_LEAK_SEPARATION_PX:g} px needed)"
         log(f"crosstalk: {path.name}  channels {estimate.separation_px:.1f} px apart{verdict}")
-    usable = [e for e in estimates if e.separation_px >= MIN_LEAK_SEPARATION_PX]
-    matrix = combine_leaks(usable)
-    if matrix is None:
-        return None, 0, 0.0
-    return matrix, len(usable), float(max(np.abs(e.matrix - matrix).max() for e in usable))
+    combined = combine_leaks(estimates)
+    return (None, 0, 0.0) if combined is None else combined
 
 
 # --- the simulated bench -------------------------------------------------------------------------------------

@@ -316,13 +316,15 @@ def unmix_sites(
 
 def combine_leaks(
     estimates: Sequence[LeakEstimate], min_separation_px: float = MIN_LEAK_SEPARATION_PX
-) -> np.ndarray | None:
-    """The median, entry by entry, of the shots whose channels are at least `min_separation_px` apart; None
-    when no shot is."""
+) -> tuple[np.ndarray, int, float] | None:
+    """The median, entry by entry, of the shots whose channels are at least `min_separation_px` apart, how many
+    shots that is and how far they spread (the largest difference of a shot's entry from the median; 0 for one
+    shot); None when no shot is that far apart."""
     usable = [e.matrix for e in estimates if e.separation_px >= min_separation_px]
     if not usable:
         return None
-    return np.median(np.stack(usable), axis=0)
+    matrix = np.median(np.stack(usable), axis=0)
+    return matrix, len(usable), float(max(np.abs(m - matrix).max() for m in usable))
 
 
 # --- the lens model and its fit -------------------------------------------------------------------------------

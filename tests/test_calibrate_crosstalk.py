@@ -80,7 +80,10 @@ def test_near_focus_the_copies_overlap_and_the_shot_is_not_used() -> None:
     assert near.separation_px < 3.0
     assert combine_leaks([near]) is None
     far = LeakEstimate(np.eye(3), 5.0, np.zeros((3, 2)))
-    assert np.array_equal(combine_leaks([near, far]), far.matrix)  # the far shot alone
+    combined = combine_leaks([near, far])
+    assert combined is not None
+    matrix, shots, spread = combined
+    assert np.array_equal(matrix, far.matrix) and shots == 1 and spread == 0.0  # the far shot alone
 
 
 def test_taking_the_leak_out_gives_the_disparity_of_a_shot_without_one() -> None:
