@@ -254,6 +254,7 @@ def format_rgbd(run: RgbdRun) -> str:
 
 RGBD_LEGEND = (
     "red-blue disparity in px of the render; bad-N: share of truth-valid pixels off by more than N px "
-    "(no value = bad); edge: within 5 px of a true depth edge; |dZ|: median depth error; rel dD: median "
-    "relative inter-object error (pixels >= 25 mm off focus); s: seconds (ours: the pipeline)"
+    "(no value = bad); edge: within 5 px of a true depth edge; far: more than 20 px from every one; |dZ|: "
+    "median depth error; rel dD: median relative inter-object error (pixels >= 25 mm off focus); slope: of the "
+    "estimated against the true disparity where within 3 px (1 = not compressed); s: seconds (ours: the pipeline)"
 )

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from mca.capture.simulated_shots import TRUTH_DIR
-from mca.processing.evaluate import PixelMetrics, RgbdRow, depth_edge_band, pixel_metrics
+from mca.processing.evaluate import FAR_FROM_EDGE_PX, PixelMetrics, RgbdRow, depth_edge_band, pixel_metrics
 
 METHODS = ("ours", "ours-raw", "wta", "bando")
 PEER_CACHE_DIR = ".peers"
@@ -372,6 +372,7 @@ def evaluate_rgbd(
                 continue
             focus = float(entry.truth["focus_distance_mm"])
             band = depth_edge_band(true_d)
+            far = ~depth_edge_band(true_d, band_px=FAR_FROM_EDGE_PX)
             estimates: dict[str, Estimate | None] = {}
             try:
                 estimates["ours"], estimates["ours-raw"] = run_ours(entry, profile, out_root)
@@ -408,7 +409,7 @@ def evaluate_rgbd(
                     )
                     continue
                 row.metrics[method] = pixel_metrics(
-                    estimate.disparity_px, estimate.distance_mm, true_d, true_z, focus, band
+                    estimate.disparity_px, estimate.distance_mm, true_d, true_z, focus, band, far
                 )
                 row.seconds[method] = estimate.seconds
             rows.append(row)

@@ -227,6 +227,10 @@ def bayer_planes(mosaic: np.ndarray, black_level: float, white_level: float) -> 
 EDGE_JUMP_PX = 0.5  # a true depth edge: 8-neighbours whose red-blue disparities differ by more than this
 EDGE_BAND_PX = 5  # pixels within this distance of a true depth edge are "near edges"
 MIN_OFF_FOCUS_MM = 25.0  # relative inter-object error only where the truth is this far off the focus plane
+FAR_FROM_EDGE_PX = 20  # pixels farther than this from every true depth edge are "interior" (far-1)
+SLOPE_WITHIN_PX = 3.0  # the disparity slope is fitted to the estimates at most this far off (not to gross errors)
+MIN_SLOPE_SPREAD_PX = 0.5  # ... and only where the true disparities spread at least this much (standard deviation)
+MIN_SLOPE_PX = 100  # ... over at least this many pixels
 
 
 @dataclass
@@ -246,19 +250,28 @@ class PixelMetrics:
     coverage: float  # share with a value
     valid_px: int
     edge_px: int
+    # where the misses are: bad-1 of the interior (farther than FAR_FROM_EDGE_PX from every true depth edge; NaN
+    # when there is none), and the least-squares slope of the estimated against the true disparity over the
+    # estimates within SLOPE_WITHIN_PX of the truth (1: none; below 1 the estimate is compressed towards one level,
+    # which every relative depth error inherits; NaN when the truth spreads less than MIN_SLOPE_SPREAD_PX)
+    far_bad_1: float = float("nan")
+    disparity_slope: float = float("nan")
+    far_px: int = 0
 
     FIELDS = (
         "bad_1",
         "bad_05",
         "edge_bad_1",
         "edge_bad_05",
+        "far_bad_1",
         "median_abs_depth_mm",
         "median_rel_inter_object",
+        "disparity_slope",
         "coverage",
     )
 
     def as_dict(self) -> dict[str, float | int]:
-        return {name: getattr(self, name) for name in self.FIELDS + ("valid_px", "edge_px")}
+        return {name: getattr(self, name) for name in self.FIELDS + ("valid_px", "edge_px", "far_px")}
 
 
 def depth_edge_band(
@@ -284,6 +297,25 @@ def depth_edge_band(
     return near & valid
 
 
+def disparity_slope(estimate_disparity_px: np.ndarray, true_disparity_px: np.ndarray, mask: np.ndarray) -> float:
+    """Least-squares slope of the estimated against the true disparity over `mask`'s pixels whose estimate is
+    within `SLOPE_WITHIN_PX` of the truth: 1 when the estimate follows the truth's range, below 1 when it is
+    compressed towards one level. NaN with fewer than `MIN_SLOPE_PX` such pixels or a truth that spreads less
+    than `MIN_SLOPE_SPREAD_PX` over them."""
+    est = np.asarray(estimate_disparity_px, np.float64)
+    true = np.asarray(true_disparity_px, np.float64)
+    with np.errstate(invalid="ignore"):
+        near = mask & (np.abs(est - true) <= SLOPE_WITHIN_PX)  # NaN compares False
+    if int(near.sum()) < MIN_SLOPE_PX:
+        return float("nan")
+    t, e = true[near], est[near]
+    t = t - t.mean()
+    spread = float(np.mean(t * t))
+    if spread < MIN_SLOPE_SPREAD_PX**2:
+        return float("nan")
+    return float(np.mean(t * (e - e.mean())) / spread)
+
+
 def pixel_metrics(
     estimate_disparity_px: np.ndarray,
     estimate_distance_mm: np.ndarray | None,
@@ -291,10 +323,13 @@ def pixel_metrics(
     true_distance_mm: np.ndarray,
     focus_distance_mm: float,
     edge_band: np.ndarray | None = None,
+    far: np.ndarray | None = None,
 ) -> PixelMetrics:
     """The figures of `PixelMetrics` for one estimate (maps at the truth's size, NaN = no value).
 
-    Without `estimate_distance_mm` the depth figures are NaN (a disparity-only method).
+    Without `estimate_distance_mm` the depth figures are NaN (a disparity-only method). `edge_band` and `far`:
+    `depth_edge_band(true)` and the pixels outside `depth_edge_band(true, band_px=FAR_FROM_EDGE_PX)` when the
+    caller scores several estimates against one truth (made here otherwise).
     """
     true_d = np.asarray(true_disparity_px, np.float32)
     est_d = np.asarray(estimate_disparity_px, np.float32)
@@ -305,6 +340,7 @@ def pixel_metrics(
     if n == 0:
         raise ValueError("the truth has no valid pixel")
     band = depth_edge_band(true_d) if edge_band is None else (edge_band & valid)
+    interior = (~depth_edge_band(true_d, band_px=FAR_FROM_EDGE_PX) if far is None else far) & valid
     error = np.abs(est_d - true_d)
     error = np.where(np.isfinite(error), error, np.inf)
 
@@ -332,6 +368,9 @@ def pixel_metrics(
         coverage=float(np.count_nonzero(np.isfinite(est_d[valid]))) / n,
         valid_px=n,
         edge_px=int(band.sum()),
+        far_bad_1=share_bad(interior, 1.0),
+        disparity_slope=disparity_slope(est_d, true_d, valid),
+        far_px=int(interior.sum()),
     )
 
 
@@ -347,8 +386,9 @@ class RgbdRow:
     summary: str = ""
 
 
-# figures where lower is better; coverage is the one where higher is better
+# figures where lower is better; coverage is the one where higher is better, and the slope's best is 1
 _HIGHER_IS_BETTER = {"coverage"}
+_BEST_AT = {"disparity_slope": 1.0}
 
 
 def summarise_rgbd(rows: list[RgbdRow], methods: list[str]) -> dict[str, dict[str, dict[str, float]]]:
@@ -363,7 +403,10 @@ def summarise_rgbd(rows: list[RgbdRow], methods: list[str]) -> dict[str, dict[st
             if values.size == 0:
                 figures[name] = {"median": float("nan"), "worst": float("nan"), "count": 0}
                 continue
-            worst = values.min() if name in _HIGHER_IS_BETTER else values.max()
+            if name in _BEST_AT:
+                worst = values[np.argmax(np.abs(values - _BEST_AT[name]))]
+            else:
+                worst = values.min() if name in _HIGHER_IS_BETTER else values.max()
             figures[name] = {"median": float(np.median(values)), "worst": float(worst), "count": int(values.size)}
         summary[method] = figures
     return summary
@@ -374,8 +417,10 @@ _COLUMNS = (
     ("bad_05", "bad-.5", "pct"),
     ("edge_bad_1", "edge-1", "pct"),
     ("edge_bad_05", "edge-.5", "pct"),
+    ("far_bad_1", "far-1", "pct"),
     ("median_abs_depth_mm", "|dZ| mm", "mm"),
     ("median_rel_inter_object", "rel dD", "pct"),
+    ("disparity_slope", "slope", "ratio"),
     ("coverage", "cover", "pct"),
 )
 
@@ -385,6 +430,8 @@ def _cell(value: float, kind: str) -> str:
         return "-"
     if math.isinf(value):
         return "inf"
+    if kind == "ratio":
+        return f"{value:.2f}"
     return f"{100 * value:.1f}%" if kind == "pct" else f"{value:.1f}"
 
 

@@ -15,7 +15,14 @@ import numpy as np
 import pytest
 
 from mca.devices.profiles import load_profile
-from mca.processing.evaluate import PixelMetrics, RgbdRow, depth_edge_band, pixel_metrics, summarise_rgbd
+from mca.processing.evaluate import (
+    PixelMetrics,
+    RgbdRow,
+    depth_edge_band,
+    disparity_slope,
+    pixel_metrics,
+    summarise_rgbd,
+)
 
 PROFILE = load_profile("paper-70d")
 MIDDLEBURY = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "middlebury"
@@ -65,6 +72,51 @@ def test_pixel_metrics_on_hand_made_arrays() -> None:
     assert m.median_rel_inter_object == pytest.approx(0.1)
     # a disparity-only method has no depth figures
     assert np.isnan(pixel_metrics(est_d, None, true_d, true_z, focus).median_abs_depth_mm)
+
+
+def test_interior_misses_are_counted_apart_from_the_edges() -> None:
+    # one depth edge between columns 29 and 30 of a 10 x 100 truth: both are edge pixels, and columns 0..8 and
+    # 51..99 are more than 20 px from the nearer of them
+    true_d = np.zeros((10, 100), np.float32)
+    true_d[:, 30:] = 3.0
+    true_z = np.where(true_d > 0, 1100.0, 1000.0)
+    est_d = true_d.copy()
+    est_d[:, 5] += 2.0  # 10 interior misses on the near side
+    est_d[:, 80:82] -= 1.5  # 20 interior misses on the far side
+    est_d[:, 31] += 2.0  # 10 misses beside the edge: not interior
+    m = pixel_metrics(est_d, None, true_d, true_z, 1000.0)
+    assert m.far_px == 10 * (9 + 49)
+    assert m.far_bad_1 == pytest.approx(30 / m.far_px)
+    assert m.bad_1 == pytest.approx(40 / 1000)
+    # no depth edge at all: every pixel is interior
+    flat = pixel_metrics(np.zeros((5, 5), np.float32), None, np.zeros((5, 5), np.float32), np.ones((5, 5)), 0.0)
+    assert flat.far_px == 25 and flat.far_bad_1 == 0.0
+
+
+def test_the_disparity_slope_measures_compression_and_ignores_gross_errors() -> None:
+    true_d = np.tile(np.linspace(-6.0, 8.0, 200, dtype=np.float32), (20, 1))
+    true_z = np.full(true_d.shape, 1200.0)
+    compressed = 0.9 * true_d + 0.3
+    assert disparity_slope(compressed, true_d, np.ones(true_d.shape, bool)) == pytest.approx(0.9, abs=1e-6)
+    m = pixel_metrics(compressed, None, true_d, true_z, 1000.0)
+    assert m.disparity_slope == pytest.approx(0.9, abs=1e-6)
+    # gross errors (beyond SLOPE_WITHIN_PX) and missing values do not bend it
+    spoiled = compressed.copy()
+    spoiled[:, ::7] = 40.0
+    spoiled[::3, 1::7] = np.nan
+    assert pixel_metrics(spoiled, None, true_d, true_z, 1000.0).disparity_slope == pytest.approx(0.9, abs=1e-6)
+    # a truth of one level has no slope to measure
+    level = np.full((20, 20), 2.0, np.float32)
+    assert np.isnan(pixel_metrics(level + 0.1, None, level, np.full(level.shape, 1100.0), 1000.0).disparity_slope)
+
+
+def test_the_worst_slope_is_the_one_farthest_from_one() -> None:
+    def metrics(slope: float) -> PixelMetrics:
+        return PixelMetrics(0.1, 0.2, 0.3, 0.4, 5.0, 0.1, 1.0, 100, 10, disparity_slope=slope)
+
+    rows = [RgbdRow(f"s{i}", "g", {"ours": metrics(v)}) for i, v in enumerate([0.95, 1.08, 0.9, 1.02])]
+    summary = summarise_rgbd(rows, ["ours"])["ours"]["disparity_slope"]
+    assert summary["worst"] == pytest.approx(0.9) and summary["median"] == pytest.approx(0.985)
 
 
 def test_missing_values_count_as_bad_and_as_infinite_errors() -> None:
