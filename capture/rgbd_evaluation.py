@@ -38,7 +38,14 @@ from typing import Any
 import numpy as np
 
 from mca.capture.simulated_shots import TRUTH_DIR
-from mca.processing.evaluate import FAR_FROM_EDGE_PX, PixelMetrics, RgbdRow, depth_edge_band, pixel_metrics
+from mca.processing.evaluate import (
+    FAR_FROM_EDGE_PX,
+    PixelMetrics,
+    RgbdRow,
+    depth_edge_band,
+    depth_edges,
+    pixel_metrics,
+)
 
 METHODS = ("ours", "ours-raw", "wta", "bando")
 PEER_CACHE_DIR = ".peers"
@@ -371,8 +378,9 @@ def evaluate_rgbd(
                     on_row(row)
                 continue
             focus = float(entry.truth["focus_distance_mm"])
-            band = depth_edge_band(true_d)
-            far = ~depth_edge_band(true_d, band_px=FAR_FROM_EDGE_PX)
+            edges = depth_edges(true_d)  # once, for both bands
+            band = depth_edge_band(true_d, edges=edges)
+            far = ~depth_edge_band(true_d, band_px=FAR_FROM_EDGE_PX, edges=edges)
             estimates: dict[str, Estimate | None] = {}
             try:
                 estimates["ours"], estimates["ours-raw"] = run_ours(entry, profile, out_root)

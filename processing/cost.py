@@ -42,9 +42,10 @@ fractional channel shifts (4 for 0.5 px steps with the paper's aperture) and the
 pixels only; per-pixel maps (`cost_at`) read bands shifted 1/8 px apart, blended linearly (apertures whose
 channels move along one image axis each; others fall back to bilinear). On 24 tuning renders, as the dense
 search's sampler, the final bad-1 mean went 8.41 -> 7.90 %, the worst 19.6 -> 17.9 %, bad-0.5 23.4 -> 21.8 %,
-the relative error 7.6 -> 7.1 %. It is an option, not the default: with it the books of the Bando photograph
-dog.png come out as two regions (`tests/test_bando.py`), the 2.1D sketch's joins again turning a small change of
-the dense map into a region split (docs/evaluation.md, seventeenth stop).
+the relative error 7.6 -> 7.1 %. For the dense search it is an option, not the default: with it the books of the
+Bando photograph dog.png come out as two regions (`tests/test_bando.py`), the 2.1D sketch's joins again turning a
+small change of the dense map into a region split (docs/evaluation.md, seventeenth stop). The refinement, which
+comes after the sketch, uses it by default (`RefineParams.sampling`; docs/evaluation.md, twenty-second stop).
 
 Both kernels are compiled with numba (pure numpy would spend seconds per megapixel here): the box sums are
 running sums over a ring buffer of rows, so one candidate costs one pass over the image.
@@ -717,12 +718,36 @@ def _gather_phased(phases, axis, shift, disparity, out):
                 out[b, y, x] = (1.0 - t) * phases[i, b, yy, xx] + t * phases[i + 1, b, yy, xx]
 
 
-def _phase_maps(bands, shifts, maps, window_px, noise_floor, out):
+def _shift_into(planes: np.ndarray, amount: float, axis: int, out: np.ndarray) -> None:
+    """`shift_band_limited(planes, ...)` by `amount` (0 <= amount <= 1) along `axis` (0: x, 1: y), written into
+    `out` (same shape) without the temporaries: the same bits, and at 20 MP no 15 MB copy to allocate and touch
+    per phase."""
+    if amount <= 1e-9:
+        out[...] = planes
+    elif amount >= 1.0 - 1e-9:  # a whole pixel, the border repeated
+        if axis == 0:
+            out[..., :-1] = planes[..., 1:]
+            out[..., -1] = planes[..., -1]
+        else:
+            out[..., :-1, :] = planes[..., 1:, :]
+            out[..., -1, :] = planes[..., -1, :]
+    else:
+        taps = shift_taps(amount)
+        one = np.ones(1, np.float32)
+        kx, ky = (taps, one) if axis == 0 else (one, taps)
+        anchor = (_SHIFT_HALF_TAPS - 1, 0) if axis == 0 else (0, _SHIFT_HALF_TAPS - 1)
+        source = np.ascontiguousarray(planes, np.float32)
+        for i in range(source.shape[0]):
+            cv2.sepFilter2D(source[i], -1, kx, ky, dst=out[i], anchor=anchor, borderType=cv2.BORDER_REFLECT)
+
+
+def _phase_maps(bands, shifts, maps, window_px, noise_floor, out, shifted=None):
     """`cost_at` with the channels moved by band-limited shifts (`shift_band_limited`, 1/`_PHASES` px apart) rather
-    than bilinear sampling; for apertures whose channels each move along one image axis."""
+    than bilinear sampling; for apertures whose channels each move along one image axis. `shifted`: a dict that
+    keeps the shifted channels for the next call on the same bands."""
     nbands, _, h, w = bands.shape
-    phased: list[tuple[np.ndarray | None, int, float]] = []
-    for c in range(3):
+    phased: list[tuple[np.ndarray | None, int, float]] = shifted.get("per_pixel", []) if shifted is not None else []
+    for c in range(3 if not phased else 0):
         axis = 0 if abs(shifts[c, 0]) > 0 else 1
         amount = float(shifts[c, axis])
         if amount == 0.0:
@@ -730,9 +755,10 @@ def _phase_maps(bands, shifts, maps, window_px, noise_floor, out):
             continue
         stack = np.empty((_PHASES + 1, nbands, h, w), np.float32)
         for k in range(_PHASES + 1):
-            f = k / _PHASES
-            stack[k] = shift_band_limited(bands[:, c], f if axis == 0 else 0.0, f if axis == 1 else 0.0)
+            _shift_into(bands[:, c], k / _PHASES, axis, stack[k])
         phased.append((stack, axis, amount))
+    if shifted is not None:
+        shifted["per_pixel"] = phased
     batch = max(1, min(nb.get_num_threads(), maps.shape[0]))
     sampled = np.empty((batch,) + bands.shape, np.float32)
     for first in range(0, maps.shape[0], batch):
@@ -776,10 +802,13 @@ def cost_at(
     noise_floor: float,
     sampling: str = "bilinear",
     noise: FeatureNoise | None = None,
+    shifted: dict | None = None,
 ) -> np.ndarray:
     """Colour-line cost of every pixel at per-pixel disparities: (K, H, W) maps in, (K, H, W) costs out.
 
-    `sampling` and `noise` as for `cost_volume` (see the module docstring)."""
+    `sampling` and `noise` as for `cost_volume` (see the module docstring). `shifted`: "phase" sampling only, a
+    dict the caller keeps across calls on the same bands (the refinement's two passes), which then shifts them
+    once: at 20 MP the shifted copies are about 400 MB to make and to touch."""
     bspline = _check_sampling(sampling)
     maps = np.ascontiguousarray(disparity_maps_px, dtype=np.float32)
     if maps.ndim == 2:
@@ -787,7 +816,7 @@ def cost_at(
     out = np.empty(maps.shape, np.float32)
     shifts = channel_shifts(aperture)
     if sampling == "phase" and _axis_aligned(shifts):
-        _phase_maps(bands, shifts, maps, window_px, noise_floor, out)
+        _phase_maps(bands, shifts, maps, window_px, noise_floor, out, shifted)
         return out
     _maps(
         bands,

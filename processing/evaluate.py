@@ -274,13 +274,10 @@ class PixelMetrics:
         return {name: getattr(self, name) for name in self.FIELDS + ("valid_px", "edge_px", "far_px")}
 
 
-def depth_edge_band(
-    true_disparity_px: np.ndarray, jump_px: float = EDGE_JUMP_PX, band_px: int = EDGE_BAND_PX
-) -> np.ndarray:
-    """Truth-valid pixels within `band_px` (Euclidean) of a true depth edge: a pair of 8-neighbours, both
-    known, whose disparities differ by more than `jump_px`."""
+def depth_edges(true_disparity_px: np.ndarray, jump_px: float = EDGE_JUMP_PX) -> np.ndarray:
+    """The true depth edges: pixels with an 8-neighbour, both known, whose disparities differ by more than
+    `jump_px`."""
     d = np.asarray(true_disparity_px, np.float32)
-    valid = np.isfinite(d)
     edges = np.zeros(d.shape, bool)
     h, w = d.shape
     padded = np.pad(d, 1, constant_values=np.nan)
@@ -289,8 +286,22 @@ def depth_edge_band(
             if dy or dx:
                 neighbour = padded[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
                 edges |= np.abs(d - neighbour) > jump_px  # NaN compares False: unknown pixels make no edge
+    return edges
+
+
+def depth_edge_band(
+    true_disparity_px: np.ndarray,
+    jump_px: float = EDGE_JUMP_PX,
+    band_px: int = EDGE_BAND_PX,
+    edges: np.ndarray | None = None,
+) -> np.ndarray:
+    """Truth-valid pixels within `band_px` (Euclidean) of a true depth edge (`depth_edges`; pass them as
+    `edges` when they are at hand, for several bands of one truth)."""
+    if edges is None:
+        edges = depth_edges(true_disparity_px, jump_px)
+    valid = np.isfinite(np.asarray(true_disparity_px, np.float32))
     if not edges.any():
-        return np.zeros(d.shape, bool)
+        return np.zeros(valid.shape, bool)
     size = 2 * band_px + 1
     disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
     near = cv2.dilate(edges.astype(np.uint8), disk).astype(bool)

@@ -54,7 +54,11 @@ class RefineParams:
     min_cells_for_slope: int = 6  # a curved region's correction gets a slope only with this many voting cells
     window_px: int = 9
     noise_floor: float = 2e-3
-    sampling: str = "bilinear"  # the cost's sampler (`processing.cost`; "phase" tried: tuning bad-1 8.8 %, not better)
+    # the cost's sampler (`processing.cost`): "phase", the band-limited one, keeps the noise's variance at every
+    # offset, where bilinear sampling averages it down between pixels and a weakly textured region is pulled
+    # towards the offsets where every channel falls between pixels (the noise model takes out only part of that).
+    # Since the twenty-second stop (docs/evaluation.md); "bilinear" until then
+    sampling: str = "phase"
     noise_model: bool = True  # the pipeline measures the noise for the cost (`refine_regions(noise=...)`)
     # a pixel's vote weighs its texture times s / (s + this), s its window's signal-to-noise ratio
     # (`features.signal_weight`; with the noise); 0: texture alone
@@ -251,13 +255,21 @@ def refine_regions(
     cy_region = np.bincount(lab, np.repeat(np.arange(h, dtype=np.float64), w), count) / areas
 
     near_occluder = owner != labels
+    shifted: dict = {}  # the "phase" sampler's shifted bands, made once for both passes
 
     def curves(base: np.ndarray, offsets: np.ndarray) -> np.ndarray:
         """Per used (region, cell) bin and offset: the weighted cost sum of the model shifted by the offset."""
         maps = np.stack([base + np.float32(o) for o in offsets]).astype(np.float32)
         maps = _occluders_own_contours(maps, near_occluder, reach)
         costs = cost_at(
-            bands, aperture, maps, params.window_px, params.noise_floor, sampling=params.sampling, noise=noise
+            bands,
+            aperture,
+            maps,
+            params.window_px,
+            params.noise_floor,
+            sampling=params.sampling,
+            noise=noise,
+            shifted=shifted,
         )
         return np.stack([np.bincount(bins, (c.ravel() * wflat), n_bins)[used] for c in costs], axis=1)
 

@@ -19,6 +19,7 @@ from mca.processing.evaluate import (
     PixelMetrics,
     RgbdRow,
     depth_edge_band,
+    depth_edges,
     disparity_slope,
     pixel_metrics,
     summarise_rgbd,
@@ -39,6 +40,9 @@ def test_depth_edge_band_is_the_5px_neighbourhood_of_true_jumps() -> None:
     columns = np.nonzero(band[10])[0]
     assert columns.min() == 19 - 5 and columns.max() == 20 + 5
     assert not band[0, 0]
+    edges = depth_edges(truth)
+    assert set(np.nonzero(edges[10])[0]) == {19, 20}  # both sides of the jump
+    assert np.array_equal(depth_edge_band(truth, edges=edges), band)  # edges handed in: the same band
     smooth = np.tile(np.linspace(0.0, 8.0, 40, dtype=np.float32), (20, 1))  # 0.2 px per px: a slope, no edge
     assert not depth_edge_band(smooth).any()
 

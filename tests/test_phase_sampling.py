@@ -112,6 +112,35 @@ def test_per_pixel_maps_at_varying_disparity_match_the_written_out_measure():
     assert np.abs(got[inner] - expected[inner]).max() < 3e-3  # bilinear sampling: 0.09
 
 
+def test_calls_that_share_the_shifted_bands_give_the_same_costs():
+    """The refinement's two passes share the shifted bands (`cost_at(shifted=...)`): the second call reads them
+    from the dict the first filled and gives the bits that shifting again gives."""
+    bands = stack_bands(feature_bands(texture((48, 64), 5, blur_px=1.2)))
+    ys, xs = np.mgrid[0:48, 0:64]
+    first = (0.3 + 0.02 * xs - 0.01 * ys).astype(np.float32)[None]
+    second = np.concatenate([first + 0.15, first - 0.4])
+    shared: dict = {}
+    a = cost_at(bands, APERTURE, first, 9, 2e-3, sampling="phase", shifted=shared)
+    assert len(shared["per_pixel"]) == 3  # one stack of shifted bands per channel
+    kept = [stack for stack, _, _ in shared["per_pixel"]]
+    b = cost_at(bands, APERTURE, second, 9, 2e-3, sampling="phase", shifted=shared)
+    assert all(stack is then for (stack, _, _), then in zip(shared["per_pixel"], kept, strict=True))
+    assert np.array_equal(a, cost_at(bands, APERTURE, first, 9, 2e-3, sampling="phase"))
+    assert np.array_equal(b, cost_at(bands, APERTURE, second, 9, 2e-3, sampling="phase"))
+
+
+def test_the_shifts_written_in_place_are_the_band_limited_shifts():
+    from mca.processing.cost import _shift_into
+
+    planes = np.random.default_rng(2).normal(size=(2, 30, 40)).astype(np.float32)
+    for axis in (0, 1):
+        for amount in (0.0, 0.125, 0.5, 0.875, 1.0):
+            out = np.empty_like(planes)
+            _shift_into(planes, amount, axis, out)
+            dx, dy = (amount, 0.0) if axis == 0 else (0.0, amount)
+            assert np.array_equal(out, shift_band_limited(planes, dx, dy)), (axis, amount)
+
+
 @pytest.mark.parametrize("truth", [0.25, 2.0])
 def test_noise_alone_no_longer_pulls_the_minimum_to_a_sampling_phase(truth):
     """Without a noise model the bilinear cost of a noisy capture is lowest toward odd red-blue disparities (every

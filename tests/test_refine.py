@@ -68,10 +68,11 @@ def test_an_occluded_region_is_not_pulled_by_its_occluder():
     assert abs(float(np.median(result.disparity_px[labels == 1])) - 4.0) < 0.12
 
 
-def test_the_b_spline_sampler_keeps_a_noisy_full_colour_region_where_it_is():
-    """`RefineParams(sampling="bspline")`: a textured region at +0.25 px with white noise in every channel is
-    refined to +0.25 px; bilinear sampling (the default, `processing.cost` says why) pulls it toward +1, where
-    every channel is sampled halfway between pixels and the noise is averaged down."""
+def test_the_band_limited_and_b_spline_samplers_keep_a_noisy_full_colour_region_where_it_is():
+    """`RefineParams(sampling="phase")` (the default) and `"bspline"`: a textured region at +0.25 px with white
+    noise in every channel is refined to +0.25 px; bilinear sampling (the default until the twenty-second stop,
+    `processing.cost` says why) pulls it toward +1, where every channel is sampled halfway between pixels and the
+    noise is averaged down."""
     rng = np.random.default_rng(4)
     shape = (160, 200)
     image = render_layers([(texture(shape, 8, blur_px=1.5), np.ones(shape, np.float32), 0.25)], shape, APERTURE)
@@ -79,11 +80,13 @@ def test_the_b_spline_sampler_keeps_a_noisy_full_colour_region_where_it_is():
     labels = np.ones(shape, np.int32)
     model = np.full(shape, 0.0, np.float32)
     level = {}
-    for sampling in ("bspline", "bilinear"):
+    assert RefineParams().sampling == "phase"
+    for sampling in ("phase", "bspline", "bilinear"):
         result = refine_regions(
             bands_of(noisy), APERTURE, labels, model, RefineParams(sampling=sampling), fronto_parallel={1}
         )
         level[sampling] = float(np.median(result.disparity_px))
+    assert abs(level["phase"] - 0.25) < 0.06
     assert abs(level["bspline"] - 0.25) < 0.06
     assert level["bilinear"] - 0.25 > 0.15  # measured +0.19 (seeds 4-6)
 
