@@ -8,7 +8,7 @@ join. For every photograph this prints how many runs pass the test's check and w
 
     .venv/bin/python benchmarks/bando_stability.py [--runs 16] [--amplitude 1e-4] [--photos dog.png,sheep.png]
 
-About 4 s per run of the 720 x 480 photographs. Prints figures only; nothing here asserts.
+About 1-2 s per run of the 720 x 480 photographs. Prints figures only; nothing here asserts.
 """
 
 from __future__ import annotations

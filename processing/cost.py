@@ -741,13 +741,12 @@ def _shift_into(planes: np.ndarray, amount: float, axis: int, out: np.ndarray) -
             cv2.sepFilter2D(source[i], -1, kx, ky, dst=out[i], anchor=anchor, borderType=cv2.BORDER_REFLECT)
 
 
-def _phase_maps(bands, shifts, maps, window_px, noise_floor, out, shifted=None):
-    """`cost_at` with the channels moved by band-limited shifts (`shift_band_limited`, 1/`_PHASES` px apart) rather
-    than bilinear sampling; for apertures whose channels each move along one image axis. `shifted`: a dict that
-    keeps the shifted channels for the next call on the same bands."""
+def _phase_stacks(bands: np.ndarray, shifts: np.ndarray) -> list[tuple[np.ndarray | None, int, float]]:
+    """Per channel: its bands shifted by k / `_PHASES` px, k = 0..`_PHASES`, along the axis it moves on (None for a
+    channel that does not move), that axis (0: x, 1: y) and its shift per px of disparity."""
     nbands, _, h, w = bands.shape
-    phased: list[tuple[np.ndarray | None, int, float]] = shifted.get("per_pixel", []) if shifted is not None else []
-    for c in range(3 if not phased else 0):
+    phased: list[tuple[np.ndarray | None, int, float]] = []
+    for c in range(3):
         axis = 0 if abs(shifts[c, 0]) > 0 else 1
         amount = float(shifts[c, axis])
         if amount == 0.0:
@@ -757,8 +756,18 @@ def _phase_maps(bands, shifts, maps, window_px, noise_floor, out, shifted=None):
         for k in range(_PHASES + 1):
             _shift_into(bands[:, c], k / _PHASES, axis, stack[k])
         phased.append((stack, axis, amount))
-    if shifted is not None:
-        shifted["per_pixel"] = phased
+    return phased
+
+
+def _phase_maps(bands, shifts, maps, window_px, noise_floor, out, shifted=None):
+    """`cost_at` with the channels moved by band-limited shifts (`shift_band_limited`, 1/`_PHASES` px apart) rather
+    than bilinear sampling; for apertures whose channels each move along one image axis. `shifted`: a dict that
+    keeps the shifted channels (`_phase_stacks`) for the next call on the same bands."""
+    phased = shifted.get("per_pixel") if shifted is not None else None
+    if phased is None:
+        phased = _phase_stacks(bands, shifts)
+        if shifted is not None:
+            shifted["per_pixel"] = phased
     batch = max(1, min(nb.get_num_threads(), maps.shape[0]))
     sampled = np.empty((batch,) + bands.shape, np.float32)
     for first in range(0, maps.shape[0], batch):
