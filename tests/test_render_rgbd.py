@@ -191,13 +191,20 @@ def test_unknown_disparity_is_filled_from_the_farther_neighbour_on_its_row() -> 
 
 
 def test_vignetting_and_crosstalk_follow_their_definitions() -> None:
-    from mca.devices.sim.render_rgbd import sensor_signal, vignetting_gain
+    from mca.devices.sim.render_rgbd import POLY_K2_RANGE, POLY_K4_RANGE, POLY_K_TYPICAL, sensor_signal, vignetting_gain
 
     optics = _optics(100, 80)
     cos4 = vignetting_gain(Realism(vignetting="cos4"), optics)
     corner_mm = math.hypot(49.5, 39.5) * optics.pixel_pitch_mm
     assert cos4[0, 0] == pytest.approx(math.cos(math.atan(corner_mm / optics.sensor_distance_mm)) ** 4, rel=1e-5)
     assert cos4.max() == pytest.approx(1.0, abs=1e-4)  # the centre pixels, half a pixel off the axis
+    poly = vignetting_gain(Realism(vignetting="poly"), optics)  # no coefficients given: the typical ones
+    assert Realism().vignetting_k == POLY_K_TYPICAL
+    assert pytest.approx((sum(POLY_K2_RANGE) / 2, sum(POLY_K4_RANGE) / 2)) == POLY_K_TYPICAL
+    k2, k4 = POLY_K_TYPICAL
+    rn2 = (math.hypot(49.5, 39.5) / math.hypot(50.0, 40.0)) ** 2  # the corner pixel's centre, over the half-diagonal
+    assert poly[0, 0] == pytest.approx(1.0 + k2 * rn2 + k4 * rn2 * rn2, rel=1e-5) and poly[0, 0] < 0.75
+    assert poly.max() == pytest.approx(1.0, abs=1e-4)
     mix = ((0.9, 0.07, 0.03), (0.05, 0.9, 0.05), (0.02, 0.08, 0.9))
     images = np.zeros((80, 100, 3), np.float32)
     images[..., 1] = 1.0  # light through the green filter only

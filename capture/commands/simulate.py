@@ -56,7 +56,9 @@ def register(app: typer.Typer) -> None:
         crosstalk: float = typer.Option(
             0.0, "--crosstalk", help="RGB-D single image: leak into each colour from the other filters (0 = off)."
         ),
-        vignetting: str = typer.Option("none", "--vignetting", help="RGB-D single image: none, cos4 or poly."),
+        vignetting: str = typer.Option(
+            "none", "--vignetting", help="RGB-D single image: none, cos4 or poly (k2 -0.275, k4 -0.025)."
+        ),
         name: str = typer.Option(None, "--name", help="RGB-D single image: name of the capture (default: the folder)."),
         seeds: str = typer.Option("1,2", "--seeds", help="RGB-D tree: the seeds, each one render per scene."),
         scenes: str = typer.Option(None, "--scenes", help="RGB-D tree: only these scenes (comma-separated)."),

@@ -279,19 +279,26 @@ def render_filter_images(
 # --- the sensor -------------------------------------------------------------------------------------------------
 
 
+# "poly" vignetting when no coefficients are drawn or given (`mca simulate --from-rgbd --vignetting poly`): the
+# middle of POLY_K2_RANGE and POLY_K4_RANGE (below). Until the twenty-second stop it was (0, 0), which rendered no
+# vignetting at all while the truth said "poly"
+POLY_K_TYPICAL = (-0.275, -0.025)
+
+
 @dataclass(frozen=True)
 class Realism:
     """What the sensor and lens add to the ideal filter images.
 
     `vignetting`: "none", "cos4" (cos^4 of the chief-ray angle, atan(r / d_ls)) or "poly"
-    (1 + k2 rn^2 + k4 rn^4, rn = radius / half-diagonal, coefficients `vignetting_k`).
+    (1 + k2 rn^2 + k4 rn^4, rn = radius / half-diagonal, coefficients `vignetting_k`; by default
+    `POLY_K_TYPICAL`, the middle of the ranges the folder mode draws from: the corners at 0.70 of the centre).
     `crosstalk`: 3x3 sensor channel <- filter, or None.
     """
 
     sensor: SensorModel = field(default_factory=SensorModel)
     crosstalk: tuple[tuple[float, float, float], ...] | None = None
     vignetting: str = "none"
-    vignetting_k: tuple[float, float] = (0.0, 0.0)
+    vignetting_k: tuple[float, float] = POLY_K_TYPICAL
 
     def __post_init__(self) -> None:
         if self.vignetting not in ("none", "cos4", "poly"):
