@@ -66,7 +66,10 @@ def test_ply_and_glb_align_in_trimesh(capture) -> None:
     found = (np.abs(hit_distances - distance[:, None]) < 1e-2 * distance[:, None]).any(axis=1)
     assert found.mean() > 0.95, f"{(~found).sum()} of {len(sample)} PLY points on no GLB quad"
     # the two files' extents agree too (metres, about a metre away): the farthest fronto-parallel quad is the
-    # farthest surface; a slanted quad spans its region's bounding box, whose corners can lie beyond the region
+    # farthest surface; a slanted quad spans its region's bounding box, whose corners can lie beyond the region.
+    # The farthest points are taken as their 0.1 % quantile: the dense depth's relief about a region's plane puts
+    # single pixels a few centimetres beyond it (paper-g's wall: its plane at 1.514 m, one pixel at 1.564 m, the
+    # 0.1 % quantile at 1.516 m, under the lowest declared versions)
     import pygltflib
 
     gltf = pygltflib.GLTF2().load(str(capture.out_dir / "scene.glb"))
@@ -75,9 +78,8 @@ def test_ply_and_glb_align_in_trimesh(capture) -> None:
         for n in gltf.nodes
         if n.mesh is not None and n.extras and not n.extras.get("slanted")
     ]
-    assert 0.9 < -points[:, 2].min() < 2.0 and min(a.min[2] for a in flat) == pytest.approx(
-        points[:, 2].min(), abs=0.05
-    )
+    farthest = float(np.quantile(points[:, 2], 0.001))
+    assert 0.9 < -farthest < 2.0 and min(a.min[2] for a in flat) == pytest.approx(farthest, abs=0.05)
     assert max(a.max[2] for a in flat) < points[:, 2].max() + 0.05  # no fronto-parallel quad nearer than a point
 
 
