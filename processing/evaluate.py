@@ -350,8 +350,9 @@ def pixel_metrics(
     n = int(valid.sum())
     if n == 0:
         raise ValueError("the truth has no valid pixel")
-    band = depth_edge_band(true_d) if edge_band is None else (edge_band & valid)
-    interior = (~depth_edge_band(true_d, band_px=FAR_FROM_EDGE_PX) if far is None else far) & valid
+    edges = depth_edges(true_d) if edge_band is None or far is None else None  # once, for either band
+    band = depth_edge_band(true_d, edges=edges) if edge_band is None else (edge_band & valid)
+    interior = (~depth_edge_band(true_d, band_px=FAR_FROM_EDGE_PX, edges=edges) if far is None else far) & valid
     error = np.abs(est_d - true_d)
     error = np.where(np.isfinite(error), error, np.inf)
 
