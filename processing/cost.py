@@ -40,7 +40,8 @@ the bands' noise keeps 97-100 % of its variance and its correlations at every sh
 and no noise model is needed. For a search over evenly spaced candidates the bands are shifted once per set of
 fractional channel shifts (4 for 0.5 px steps with the paper's aperture) and the kernel moves them by whole
 pixels only; per-pixel maps (`cost_at`) read bands shifted 1/8 px apart, blended linearly (apertures whose
-channels move along one image axis each; others fall back to bilinear). On 24 tuning renders, as the dense
+channels move along one image axis each; others fall back to bilinear), made strip by strip for the rows each strip
+reads. On 24 tuning renders, as the dense
 search's sampler, the final bad-1 mean went 8.41 -> 7.90 %, the worst 19.6 -> 17.9 %, bad-0.5 23.4 -> 21.8 %,
 the relative error 7.6 -> 7.1 %. For the dense search it is an option, not the default: with it the books of the
 Bando photograph dog.png come out as two regions (`tests/test_bando.py`), the 2.1D sketch's joins again turning a
@@ -694,16 +695,17 @@ def _axis_aligned(shifts: np.ndarray) -> bool:
 
 
 @nb.njit(cache=True, parallel=True, fastmath=FASTMATH)
-def _gather_phased(phases, axis, shift, disparity, out):
-    """out[b, y, x] = the channel's bands at (x, y) + disparity[y, x] * shift along `axis` (0: x, 1: y), from
-    `phases` (P + 1, B, H, W): its bands shifted by k / P px (`shift_band_limited`), k = 0..P; the whole pixels
-    clamped."""
+def _gather_phased(phases, axis, shift, disparity, out, first_row, height, stack_row):
+    """out[b, r, x] = the channel's bands at image pixel (x, y = first_row + r) + disparity[r, x] * shift along
+    `axis` (0: x, 1: y), from `phases` (P + 1, B, rows, W): its bands shifted by k / P px (`shift_band_limited`),
+    k = 0..P, whose row 0 is image row `stack_row`; the whole pixels clamped to the image (`height` rows)."""
     steps = phases.shape[0] - 1
-    nbands, h, w = out.shape
-    for row in nb.prange(h):
-        y = np.int64(row)  # a prange index may be unsigned: kept signed so that the clamps stay integers
+    nbands, rows, w = out.shape
+    for r in nb.prange(rows):
+        row = np.int64(r)  # a prange index may be unsigned: kept signed so that the clamps stay integers
+        y = first_row + row
         for x in range(w):
-            pos = disparity[y, x] * shift
+            pos = disparity[row, x] * shift
             whole = np.floor(pos)
             q = (pos - whole) * steps
             i = min(int(q), steps - 1)
@@ -713,9 +715,10 @@ def _gather_phased(phases, axis, shift, disparity, out):
             if axis == 0:
                 xx = min(max(xx + int(whole), 0), w - 1)
             else:
-                yy = min(max(yy + int(whole), 0), h - 1)
+                yy = min(max(yy + int(whole), 0), height - 1)
+            yy -= stack_row
             for b in range(nbands):
-                out[b, y, x] = (1.0 - t) * phases[i, b, yy, xx] + t * phases[i + 1, b, yy, xx]
+                out[b, row, x] = (1.0 - t) * phases[i, b, yy, xx] + t * phases[i + 1, b, yy, xx]
 
 
 def _shift_into(planes: np.ndarray, amount: float, axis: int, out: np.ndarray) -> None:
@@ -741,61 +744,125 @@ def _shift_into(planes: np.ndarray, amount: float, axis: int, out: np.ndarray) -
             cv2.sepFilter2D(source[i], -1, kx, ky, dst=out[i], anchor=anchor, borderType=cv2.BORDER_REFLECT)
 
 
-def _phase_stacks(bands: np.ndarray, shifts: np.ndarray) -> list[tuple[np.ndarray | None, int, float]]:
-    """Per channel: its bands shifted by k / `_PHASES` px, k = 0..`_PHASES`, along the axis it moves on (None for a
-    channel that does not move), that axis (0: x, 1: y) and its shift per px of disparity."""
+# The per-pixel "phase" sampler works in strips of this many rows: each strip's shifted bands (`_PHASES` + 1 copies of
+# every band of every channel) are made in the same buffers, read, and replaced by the next strip's. Made whole for
+# the image, they were about 400 MB at 20 MP: the refinement's peak and the process's, made twice as costly again by
+# the first write to so much fresh memory (docs/evaluation.md, twenty-third stop).
+_PHASE_STRIP_ROWS = 96
+
+
+def _phase_strip(bands: np.ndarray, c: int, axis: int, rows: tuple[int, int], out: np.ndarray) -> np.ndarray:
+    """Channel c's bands shifted by k / `_PHASES` px along `axis`, k = 0..`_PHASES`, on image rows `rows`
+    ([first, last)), written into the front of `out` and returned as a view: (P + 1, B, last - first, W). The bits of
+    the whole image's shifts (`_shift_into`): along y, each shift reads the bands `_SHIFT_HALF_TAPS` + 1 rows beyond
+    the strip (reflected only at the image's own borders), and those rows are dropped."""
+    h = bands.shape[2]
+    first, last = rows
+    if axis == 0:
+        source = np.ascontiguousarray(bands[:, c, first:last])
+        stack = out[:, :, : last - first]
+        for k in range(_PHASES + 1):
+            _shift_into(source, k / _PHASES, axis, stack[k])
+        return stack
+    lo, hi = max(0, first - _SHIFT_HALF_TAPS - 1), min(h, last + _SHIFT_HALF_TAPS + 1)
+    source = np.ascontiguousarray(bands[:, c, lo:hi])
+    moved = np.empty_like(source)
+    stack = out[:, :, : last - first]
+    for k in range(_PHASES + 1):
+        _shift_into(source, k / _PHASES, axis, moved)
+        stack[k] = moved[:, first - lo : last - lo]
+    return stack
+
+
+def _sample_rows(maps: np.ndarray, amount: float, rows: tuple[int, int], h: int) -> tuple[int, int]:
+    """The image rows [first, last) that a channel moving `amount` px along y per px of disparity samples for the
+    map rows `rows` (whole pixels clamped to the image, as `_gather_phased` clamps them)."""
+    first, last = rows
+    whole = np.floor(maps[:, first:last] * np.float32(amount))
+    whole = whole[np.isfinite(whole)]
+    low, high = (int(whole.min()), int(whole.max())) if whole.size else (0, 0)
+    return min(max(first + low, 0), h - 1), min(max(last - 1 + high, 0), h - 1) + 1
+
+
+def _channel_strip(job: tuple) -> tuple[np.ndarray, int, float, int]:
+    """One channel's `_phase_strip` for `_phase_maps`: job (bands, channel, (axis, shift per px), rows, buffer) ->
+    (its shifted bands, axis, shift, first image row)."""
+    bands, c, (axis, amount), rows, buffer = job
+    return _phase_strip(bands, c, axis, rows, buffer), axis, amount, rows[0]
+
+
+def _phase_maps(bands, shifts, maps, window_px, noise_floor, out):
+    """`cost_at` with the channels moved by band-limited shifts (`shift_band_limited`, 1/`_PHASES` px apart) rather
+    than bilinear sampling; for apertures whose channels each move along one image axis. Strip by strip
+    (`_PHASE_STRIP_ROWS`); a strip's windows read `window_px` // 2 rows on either side of it, sampled with it."""
     nbands, _, h, w = bands.shape
-    phased: list[tuple[np.ndarray | None, int, float]] = []
+    radius = int(window_px) // 2
+    count = maps.shape[0]
+    batch = max(1, min(nb.get_num_threads(), count))
+    noise = _noise_arrays(None, bands)
+    eps = float(noise_floor) ** 2
+    moving: list[tuple[int, float] | None] = []  # per channel: the axis it moves along, its shift per px of disparity
     for c in range(3):
         axis = 0 if abs(shifts[c, 0]) > 0 else 1
         amount = float(shifts[c, axis])
-        if amount == 0.0:
-            phased.append((None, 0, 0.0))
-            continue
-        stack = np.empty((_PHASES + 1, nbands, h, w), np.float32)
-        for k in range(_PHASES + 1):
-            _shift_into(bands[:, c], k / _PHASES, axis, stack[k])
-        phased.append((stack, axis, amount))
-    return phased
-
-
-def _phase_maps(bands, shifts, maps, window_px, noise_floor, out, shifted=None):
-    """`cost_at` with the channels moved by band-limited shifts (`shift_band_limited`, 1/`_PHASES` px apart) rather
-    than bilinear sampling; for apertures whose channels each move along one image axis. `shifted`: a dict that
-    keeps the shifted channels (`_phase_stacks`) for the next call on the same bands."""
-    phased = shifted.get("per_pixel") if shifted is not None else None
-    if phased is None:
-        phased = _phase_stacks(bands, shifts)
-        if shifted is not None:
-            shifted["per_pixel"] = phased
-    batch = max(1, min(nb.get_num_threads(), maps.shape[0]))
-    sampled = np.empty((batch,) + bands.shape, np.float32)
-    for first in range(0, maps.shape[0], batch):
-        last = min(first + batch, maps.shape[0])
-        for k in range(first, last):
-            for c in range(3):
-                moved, along, by = phased[c]
-                if moved is None:
-                    sampled[k - first, :, c] = bands[:, c]
-                else:
-                    _gather_phased(moved, along, by, maps[k], sampled[k - first, :, c])
-        _presampled_maps(
-            sampled[: last - first],
-            int(window_px) // 2,
-            float(noise_floor) ** 2,
-            *_noise_arrays(None, bands),
-            out[first:last],
-        )
+        moving.append(None if amount == 0.0 else (axis, amount))
+    buffers: list[np.ndarray | None] = [None, None, None]  # each channel's shifted bands, used again strip by strip
+    window_rows = min(h, _PHASE_STRIP_ROWS + 2 * radius)
+    sampled = np.empty((batch, nbands, 3, window_rows, w), np.float32)
+    costs = np.empty((batch, window_rows, w), np.float32)
+    for top in range(0, h, _PHASE_STRIP_ROWS):
+        bottom = min(h, top + _PHASE_STRIP_ROWS)
+        first, last = max(0, top - radius), min(h, bottom + radius)  # the rows the strip's windows read
+        jobs = []  # per moving channel: what `_channel_strip` makes
+        for c in range(3):
+            motion = moving[c]
+            if motion is None:
+                continue
+            rows = _sample_rows(maps, motion[1], (first, last), h) if motion[0] == 1 else (first, last)
+            buffer = buffers[c]
+            if buffer is None or buffer.shape[2] < rows[1] - rows[0]:
+                buffer = buffers[c] = np.empty((_PHASES + 1, nbands, rows[1] - rows[0] + 32, w), np.float32)
+            jobs.append((bands, c, motion, rows, buffer))
+        stacks: list[tuple[np.ndarray, int, float, int] | None] = [None, None, None]
+        for job in jobs:  # one after another: OpenCV's filters take both cores already (two threads: no faster)
+            stacks[job[1]] = _channel_strip(job)
+        for start in range(0, count, batch):
+            stop = min(start + batch, count)
+            for k in range(start, stop):
+                for c in range(3):
+                    strip = sampled[k - start, :, c, : last - first]
+                    stack = stacks[c]
+                    if stack is None:
+                        strip[...] = bands[:, c, first:last]
+                    else:
+                        moved, along, by, stack_row = stack
+                        _gather_phased(moved, along, by, maps[k, first:last], strip, first, h, stack_row)
+            _presampled_maps(sampled, stop - start, last - first, radius, eps, *noise, costs)
+            out[start:stop, top:bottom] = costs[: stop - start, top - first : bottom - first]
 
 
 @nb.njit(cache=True, parallel=True)
-def _presampled_maps(sampled, radius, eps, variance, gain, rho, signal_rho, out) -> None:
-    """out[k] = the cost map of the bands sampled[k] (B, 3, H, W) as they stand (already moved; the noise arrays
-    `_noise_arrays(None, ...)`'s: no noise model); one map per thread."""
+def _presampled_maps(sampled, count, rows, radius, eps, variance, gain, rho, signal_rho, out) -> None:
+    """out[k, :rows] = the cost map of the bands sampled[k, :, :, :rows] ((B, 3, rows, W)) as they stand (already
+    moved; the noise arrays `_noise_arrays(None, ...)`'s: no noise model), k < `count`; one map per thread. The
+    buffers come whole, whatever part of them a strip fills, so that the kernel is compiled for one layout."""
     zeros = np.zeros((3, 2))
     none = np.zeros((0, sampled.shape[4]), np.float32)
-    for k in nb.prange(out.shape[0]):
-        _cost_map(sampled[k], zeros, 0.0, none, radius, eps, out[k], False, variance, gain, rho, signal_rho)
+    for k in nb.prange(count):
+        _cost_map(
+            sampled[k, :, :, :rows],
+            zeros,
+            0.0,
+            none,
+            radius,
+            eps,
+            out[k, :rows],
+            False,
+            variance,
+            gain,
+            rho,
+            signal_rho,
+        )
 
 
 def _view_rows(out, indices):
@@ -811,13 +878,11 @@ def cost_at(
     noise_floor: float,
     sampling: str = "bilinear",
     noise: FeatureNoise | None = None,
-    shifted: dict | None = None,
 ) -> np.ndarray:
     """Colour-line cost of every pixel at per-pixel disparities: (K, H, W) maps in, (K, H, W) costs out.
 
-    `sampling` and `noise` as for `cost_volume` (see the module docstring). `shifted`: "phase" sampling only, a
-    dict the caller keeps across calls on the same bands (the refinement's two passes), which then shifts them
-    once: at 20 MP the shifted copies are about 400 MB to make and to touch."""
+    `sampling` and `noise` as for `cost_volume` (see the module docstring); "phase" works strip by strip
+    (`_phase_maps`)."""
     bspline = _check_sampling(sampling)
     maps = np.ascontiguousarray(disparity_maps_px, dtype=np.float32)
     if maps.ndim == 2:
@@ -825,7 +890,7 @@ def cost_at(
     out = np.empty(maps.shape, np.float32)
     shifts = channel_shifts(aperture)
     if sampling == "phase" and _axis_aligned(shifts):
-        _phase_maps(bands, shifts, maps, window_px, noise_floor, out, shifted)
+        _phase_maps(bands, shifts, maps, window_px, noise_floor, out)
         return out
     _maps(
         bands,

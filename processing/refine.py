@@ -255,7 +255,6 @@ def refine_regions(
     cy_region = np.bincount(lab, np.repeat(np.arange(h, dtype=np.float64), w), count) / areas
 
     near_occluder = owner != labels
-    shifted: dict = {}  # the "phase" sampler's shifted bands, made once for both passes
 
     def curves(base: np.ndarray, offsets: np.ndarray) -> np.ndarray:
         """Per used (region, cell) bin and offset: the weighted cost sum of the model shifted by the offset."""
@@ -269,7 +268,6 @@ def refine_regions(
             params.noise_floor,
             sampling=params.sampling,
             noise=noise,
-            shifted=shifted,
         )
         return np.stack([np.bincount(bins, (c.ravel() * wflat), n_bins)[used] for c in costs], axis=1)
 

@@ -112,21 +112,33 @@ def test_per_pixel_maps_at_varying_disparity_match_the_written_out_measure():
     assert np.abs(got[inner] - expected[inner]).max() < 3e-3  # bilinear sampling: 0.09
 
 
-def test_calls_that_share_the_shifted_bands_give_the_same_costs():
-    """The refinement's two passes share the shifted bands (`cost_at(shifted=...)`): the second call reads them
-    from the dict the first filled and gives the bits that shifting again gives."""
-    bands = stack_bands(feature_bands(texture((48, 64), 5, blur_px=1.2)))
-    ys, xs = np.mgrid[0:48, 0:64]
-    first = (0.3 + 0.02 * xs - 0.01 * ys).astype(np.float32)[None]
-    second = np.concatenate([first + 0.15, first - 0.4])
-    shared: dict = {}
-    a = cost_at(bands, APERTURE, first, 9, 2e-3, sampling="phase", shifted=shared)
-    assert len(shared["per_pixel"]) == 3  # one stack of shifted bands per channel
-    kept = [stack for stack, _, _ in shared["per_pixel"]]
-    b = cost_at(bands, APERTURE, second, 9, 2e-3, sampling="phase", shifted=shared)
-    assert all(stack is then for (stack, _, _), then in zip(shared["per_pixel"], kept, strict=True))
-    assert np.array_equal(a, cost_at(bands, APERTURE, first, 9, 2e-3, sampling="phase"))
-    assert np.array_equal(b, cost_at(bands, APERTURE, second, 9, 2e-3, sampling="phase"))
+def test_strips_give_the_costs_of_the_whole_image(monkeypatch):
+    """Per-pixel maps are costed strip by strip (`cost._PHASE_STRIP_ROWS`), each strip's shifted bands made for
+    the rows it reads: the costs are those of one strip over the whole image (to the float32 rounding of the
+    windows' running sums, which start again at each strip). The maps move green up to 8 rows up and down across strip
+    boundaries and off the image's top and bottom."""
+    from mca.processing import cost
+
+    h, w = 230, 64
+    bands = stack_bands(feature_bands(texture((h, w), 5, blur_px=1.2)))
+    ys, xs = np.mgrid[0:h, 0:w]
+    wave = 12.0 * np.sin(ys / 17.0) + 0.03 * xs  # green moves half the disparity along y: up to 7.2 rows
+    maps = np.stack([wave, wave + 0.4, -wave]).astype(np.float32)
+    made: list[tuple[int, int]] = []
+    phase_strip = cost._phase_strip
+
+    def spy(bands, c, axis, rows, out):
+        made.append(rows)
+        return phase_strip(bands, c, axis, rows, out)
+
+    monkeypatch.setattr(cost, "_phase_strip", spy)
+    strips = cost_at(bands, APERTURE, maps, 9, 2e-3, sampling="phase")
+    assert len(made) == 3 * 3  # 3 strips of 96 rows, 3 moving channels each
+    assert max(last - first for first, last in made) <= 96 + 2 * 4 + 2 * 8  # never the whole image
+    monkeypatch.setattr(cost, "_PHASE_STRIP_ROWS", h)
+    whole = cost_at(bands, APERTURE, maps, 9, 2e-3, sampling="phase")
+    assert np.abs(strips - whole).max() < 1e-5
+    assert np.array_equal(strips[:, :92], whole[:, :92])  # the first strip's rows that read no row of the next
 
 
 def test_the_shifts_written_in_place_are_the_band_limited_shifts():
