@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
+from mca.capture.memory import keep_freed_memory
 from mca.capture.output_folders import OutputFolderError, output_name_for, prepare_root
 from mca.capture.pipeline_app import (
     RECORDING_NAME,
@@ -205,14 +206,11 @@ class InlineRunner:
         task = self.queue.popleft()
         report = self.job.on_stage
         on_stage = None if report is None else (lambda stage: report(task, stage))
-        return [
-            (
-                task,
-                process_file(
-                    task.input_path, self.job.out_root, self.job.profile, on_stage=on_stage, **self.job.kwargs(task)
-                ),
-            )
-        ]
+        outcome = process_file(
+            task.input_path, self.job.out_root, self.job.profile, on_stage=on_stage, **self.job.kwargs(task)
+        )
+        keep_freed_memory()  # the next capture reuses this one's memory (capture/memory.py)
+        return [(task, outcome)]
 
     def cancel(self) -> list[Task]:
         cancelled = list(self.queue)
@@ -246,7 +244,10 @@ def _pool_process_file(
     """`process_file` in a pool worker, announcing its stages as (key, stage) on the pool's queue."""
     queue = stage_queue()
     on_stage = None if queue is None else (lambda stage: queue.put((key, stage)))
-    return process_file(input_path, out_root, profile, on_stage=on_stage, **kwargs)
+    try:
+        return process_file(input_path, out_root, profile, on_stage=on_stage, **kwargs)
+    finally:
+        keep_freed_memory()  # the worker's next capture reuses this one's memory (capture/memory.py)
 
 
 class PoolRunner:

@@ -32,6 +32,7 @@ from typing import Any
 from mca.capture.catalog import Catalog
 from mca.capture.file_names import FilenamePattern
 from mca.capture.hooks import HookScript
+from mca.capture.memory import keep_freed_memory
 from mca.devices.cameras import CameraFactory
 from mca.devices.ptp.camera import (
     MAX_OBJECT_BYTES,
@@ -592,6 +593,7 @@ class TetherSession:
             reason = f"processing failed: {exc}"
         else:
             reason = getattr(outcome, "reason", None) or ""
+        keep_freed_memory()  # the next shot reuses this one's memory (capture/memory.py)
         if outcome is None or getattr(outcome, "status", "done") == "failed":
             msg = reason if reason.startswith("processing failed") else f"processing failed: {reason}"
             self.catalog.mark_failed(shot_id, msg)

@@ -784,13 +784,6 @@ def _sample_rows(maps: np.ndarray, amount: float, rows: tuple[int, int], h: int)
     return min(max(first + low, 0), h - 1), min(max(last - 1 + high, 0), h - 1) + 1
 
 
-def _channel_strip(job: tuple) -> tuple[np.ndarray, int, float, int]:
-    """One channel's `_phase_strip` for `_phase_maps`: job (bands, channel, (axis, shift per px), rows, buffer) ->
-    (its shifted bands, axis, shift, first image row)."""
-    bands, c, (axis, amount), rows, buffer = job
-    return _phase_strip(bands, c, axis, rows, buffer), axis, amount, rows[0]
-
-
 def _phase_maps(bands, shifts, maps, window_px, noise_floor, out):
     """`cost_at` with the channels moved by band-limited shifts (`shift_band_limited`, 1/`_PHASES` px apart) rather
     than bilinear sampling; for apertures whose channels each move along one image axis. Strip by strip
@@ -813,19 +806,17 @@ def _phase_maps(bands, shifts, maps, window_px, noise_floor, out):
     for top in range(0, h, _PHASE_STRIP_ROWS):
         bottom = min(h, top + _PHASE_STRIP_ROWS)
         first, last = max(0, top - radius), min(h, bottom + radius)  # the rows the strip's windows read
-        jobs = []  # per moving channel: what `_channel_strip` makes
-        for c in range(3):
+        stacks: list[tuple[np.ndarray, int, float, int] | None] = [None, None, None]
+        for c in range(3):  # one channel after another: OpenCV's filters take both cores already
             motion = moving[c]
             if motion is None:
                 continue
-            rows = _sample_rows(maps, motion[1], (first, last), h) if motion[0] == 1 else (first, last)
+            axis, amount = motion
+            rows = _sample_rows(maps, amount, (first, last), h) if axis == 1 else (first, last)
             buffer = buffers[c]
             if buffer is None or buffer.shape[2] < rows[1] - rows[0]:
                 buffer = buffers[c] = np.empty((_PHASES + 1, nbands, rows[1] - rows[0] + 32, w), np.float32)
-            jobs.append((bands, c, motion, rows, buffer))
-        stacks: list[tuple[np.ndarray, int, float, int] | None] = [None, None, None]
-        for job in jobs:  # one after another: OpenCV's filters take both cores already (two threads: no faster)
-            stacks[job[1]] = _channel_strip(job)
+            stacks[c] = (_phase_strip(bands, c, axis, rows, buffer), axis, amount, rows[0])
         for start in range(0, count, batch):
             stop = min(start + batch, count)
             for k in range(start, stop):
