@@ -468,7 +468,7 @@ class CostInput:
     model. Made once per capture (`cost_input`) and shared by every stage that reads the colour-alignment cost
     of those planes (the dense search, the refinement, the texture evidence)."""
 
-    bands: list[np.ndarray]  # [(H, W, 3) float32, ...] as `features.feature_bands` makes them
+    bands: list[np.ndarray]  # [(H, W, 3) float32, ...] as `features.feature_bands` makes them (views of `stacked`)
     stacked: np.ndarray  # (B, 3, H, W) float32, `stack_bands(bands)`
     noise: FeatureNoise | None  # `features.feature_noise(planes, bands)`, None when no stage asks for it
     # what the stages derive from the bands and ask for more than once, made on first use
@@ -509,10 +509,13 @@ class CostInput:
 
 
 def cost_input(planes: np.ndarray, noise_model: bool = True) -> CostInput:
-    """The `CostInput` of (H, W, 3) linear planes; the noise model is measured only when `noise_model`."""
+    """The `CostInput` of (H, W, 3) linear planes; the noise model is measured only when `noise_model`. Its
+    `bands` are views of its stack (one copy of the bands, not two: 47 MB less at 20 MP, held through the dense
+    search's peak)."""
     log = log_compress(planes)
-    bands = feature_bands(planes, log=log)
-    return CostInput(bands, stack_bands(bands), feature_noise(planes, bands, log=log) if noise_model else None)
+    stacked = stack_bands(feature_bands(planes, log=log))
+    bands = [np.moveaxis(stacked[b], 0, -1) for b in range(stacked.shape[0])]
+    return CostInput(bands, stacked, feature_noise(planes, bands, log=log) if noise_model else None)
 
 
 SAMPLINGS = ("bspline", "bilinear", "phase")
