@@ -876,11 +876,15 @@ def cost_at(
     """Colour-line cost of every pixel at per-pixel disparities: (K, H, W) maps in, (K, H, W) costs out.
 
     `sampling` and `noise` as for `cost_volume` (see the module docstring); "phase" works strip by strip
-    (`_phase_maps`)."""
+    (`_phase_maps`). A disparity that is not finite is costed at 0: the kernels assume finite values (`jit.FASTMATH`),
+    and a NaN would have become an index anywhere in memory."""
     bspline = _check_sampling(sampling)
     maps = np.ascontiguousarray(disparity_maps_px, dtype=np.float32)
     if maps.ndim == 2:
         maps = maps[None]
+    finite = np.isfinite(maps)
+    if not finite.all():
+        maps = np.where(finite, maps, np.float32(0.0))
     out = np.empty(maps.shape, np.float32)
     shifts = channel_shifts(aperture)
     if sampling == "phase" and _axis_aligned(shifts):

@@ -182,3 +182,18 @@ def test_on_noise_alone_the_cost_is_the_same_at_every_sampling_phase():
         curve = volume[:, 20:-20, 20:-20].reshape(len(candidates), -1).mean(axis=1)
         swings[sampling] = float(curve.max() - curve.min())
     assert swings["phase"] < 0.25 * swings["bilinear"], swings
+
+
+@pytest.mark.parametrize("sampling", ["phase", "bilinear", "bspline"])
+def test_a_disparity_that_is_not_finite_is_costed_at_zero(sampling):
+    """The kernels assume finite values: a NaN or an infinity in a per-pixel map is costed as disparity 0, not
+    turned into an index anywhere in memory."""
+    bands = stack_bands(feature_bands(texture((40, 48), 6, blur_px=1.2)))
+    maps = np.full((2, 40, 48), 0.75, np.float32)
+    maps[0, 10, 20] = np.nan
+    maps[1, 30, 5] = np.inf
+    maps[1, 0, 0] = -np.inf
+    cleaned = np.where(np.isfinite(maps), maps, np.float32(0.0))
+    got = cost_at(bands, APERTURE, maps, 9, 2e-3, sampling=sampling)
+    assert np.isfinite(got).all()
+    assert np.array_equal(got, cost_at(bands, APERTURE, cleaned, 9, 2e-3, sampling=sampling))
