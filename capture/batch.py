@@ -248,6 +248,8 @@ def _pool_process_file(
         return process_file(input_path, out_root, profile, on_stage=on_stage, **kwargs)
     finally:
         keep_freed_memory()  # the worker's next capture reuses this one's memory (capture/memory.py)
+        if queue is not None:
+            queue.put((key, None))  # the end of this file's stages: they reach the parent before it (one feeder)
 
 
 class PoolRunner:
@@ -267,6 +269,7 @@ class PoolRunner:
         )
         self.futures: dict[concurrent.futures.Future, Task] = {}
         self.by_key: dict[str, Task] = {}
+        self.ended: set[str] = set()  # keys whose stages have all arrived (the worker's end marker)
 
     def submit(self, task: Task) -> None:
         future = self.executor.submit(
@@ -280,17 +283,35 @@ class PoolRunner:
         self.futures[future] = task
         self.by_key[_key(task)] = task
 
-    def _drain_stages(self) -> None:
+    def _drain_stages(self, block_s: float = 0.0) -> bool:
+        """Hand the stages that have arrived to the display; with `block_s`, wait that long for the next one.
+        False when none was there."""
         import queue as queue_module
 
         while self.stages is not None and self.job.on_stage is not None:
             try:
-                key, stage = self.stages.get_nowait()
-            except (queue_module.Empty, OSError, EOFError):
-                return
+                key, stage = self.stages.get(timeout=block_s) if block_s > 0 else self.stages.get_nowait()
+            except (queue_module.Empty, OSError, EOFError, ValueError):
+                return False
+            block_s = 0.0
+            if stage is None:
+                self.ended.add(key)
+                continue
             task = self.by_key.get(key)
             if task is not None:
                 self.job.on_stage(task, stage)
+        return True
+
+    def _await_stages(self, tasks: list[Task], limit_s: float = 2.0) -> None:
+        """Wait until every stage of `tasks` (finished) has reached the display. A worker's stages travel on the
+        stage queue's feeder thread, its result on another pipe: the result can arrive first, and a stage arriving
+        after its file's result was dropped (a two-worker batch showed "read, disparity" without "write"). A
+        worker that died sends no end marker: then this gives up after `limit_s`."""
+        if self.stages is None or self.job.on_stage is None:
+            return
+        deadline = time.monotonic() + limit_s
+        while any(_key(t) not in self.ended for t in tasks) and time.monotonic() < deadline:
+            self._drain_stages(block_s=max(0.01, min(0.1, deadline - time.monotonic())))
 
     def wait(self, timeout_s: float) -> list[tuple[Task, FileOutcome]]:
         if not self.futures:
@@ -305,10 +326,12 @@ class PoolRunner:
             if done or time.monotonic() >= deadline:
                 break
         self._drain_stages()
+        self._await_stages([self.futures[future] for future in done])
         finished = []
         for future in done:
             task = self.futures.pop(future)
             self.by_key.pop(_key(task), None)
+            self.ended.discard(_key(task))
             try:
                 finished.append((task, future.result()))
             except concurrent.futures.process.BrokenProcessPool:
