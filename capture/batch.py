@@ -283,16 +283,15 @@ class PoolRunner:
         self.futures[future] = task
         self.by_key[_key(task)] = task
 
-    def _drain_stages(self, block_s: float = 0.0) -> bool:
-        """Hand the stages that have arrived to the display; with `block_s`, wait that long for the next one.
-        False when none was there."""
+    def _drain_stages(self, block_s: float = 0.0) -> None:
+        """Hand the stages that have arrived to the display; with `block_s`, wait that long for the next one."""
         import queue as queue_module
 
         while self.stages is not None and self.job.on_stage is not None:
             try:
                 key, stage = self.stages.get(timeout=block_s) if block_s > 0 else self.stages.get_nowait()
             except (queue_module.Empty, OSError, EOFError, ValueError):
-                return False
+                return
             block_s = 0.0
             if stage is None:
                 self.ended.add(key)
@@ -300,7 +299,6 @@ class PoolRunner:
             task = self.by_key.get(key)
             if task is not None:
                 self.job.on_stage(task, stage)
-        return True
 
     def _await_stages(self, tasks: list[Task], limit_s: float = 2.0) -> None:
         """Wait until every stage of `tasks` (finished) has reached the display. A worker's stages travel on the

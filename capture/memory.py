@@ -19,7 +19,6 @@ between captures. `MCA_RETURN_MEMORY=1` leaves the allocator as it is. Elsewhere
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import os
 import sys
 
@@ -43,7 +42,7 @@ def keep_freed_memory() -> bool:
     if os.environ.get(RETURN_MEMORY_ENV, "0") not in ("", "0") or not sys.platform.startswith("linux"):
         return False
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc = ctypes.CDLL(None)  # the process's own symbols, libc's among them: no search for the library file
         mallopt = libc.mallopt
         libc.gnu_get_libc_version  # noqa: B018 - glibc's alone: musl has mallopt as a stub that does nothing
     except (OSError, AttributeError):

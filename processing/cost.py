@@ -781,9 +781,8 @@ def _sample_rows(maps: np.ndarray, amount: float, rows: tuple[int, int], h: int)
     """The image rows [first, last) that a channel moving `amount` px along y per px of disparity samples for the
     map rows `rows` (whole pixels clamped to the image, as `_gather_phased` clamps them)."""
     first, last = rows
-    whole = np.floor(maps[:, first:last] * np.float32(amount))
-    whole = whole[np.isfinite(whole)]
-    low, high = (int(whole.min()), int(whole.max())) if whole.size else (0, 0)
+    whole = np.floor(maps[:, first:last] * np.float32(amount))  # finite: `cost_at` costs the rest at 0
+    low, high = int(whole.min()), int(whole.max())
     return min(max(first + low, 0), h - 1), min(max(last - 1 + high, 0), h - 1) + 1
 
 
