@@ -58,7 +58,22 @@ _register_commands()
 
 
 def main() -> None:
-    app()
+    try:
+        app()
+    finally:
+        forget_handled_interrupt()
+
+
+def forget_handled_interrupt() -> None:
+    """Let a Ctrl-C that a command caught and reported end the process with the command's own exit code.
+
+    CPython marks an interrupt as unhandled when a KeyboardInterrupt leaves code run by `exec` or `eval` on a
+    string (dataclasses and numba make functions that way), even when a caller catches it further up. Under
+    `python -m mca` the mark survives `sys.exit`: the process then ends by killing itself with SIGINT (return
+    code -2, shell status 130) instead of, say, `mca process`'s exit 1 after it listed the interrupted files.
+    Running a string clears the mark. An interrupt that really is unhandled is marked again after this, on
+    its way out of the module."""
+    exec("pass")  # a constant string, run for its side effect on that mark
 
 
 if __name__ == "__main__":
