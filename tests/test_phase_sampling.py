@@ -48,6 +48,20 @@ def test_a_shift_is_scipys_fourier_shift_inside_the_image(dx, dy):
     assert np.abs(got[inner] - expected[inner]).max() < 2e-3 * plane.std() * 10
 
 
+@pytest.mark.parametrize("axis", [0, 1])
+def test_a_fractional_shift_is_the_taps_convolved_with_the_mirrored_image_up_to_its_borders(axis):
+    """Against numpy in float64, borders included: the taps at offsets -7..8 read the image mirrored at its edges
+    (the edge pixel repeated, "fedcba|abcdef"), along x or along y alone."""
+    plane = periodic_texture((40, 52), 3)[..., 0]
+    taps = shift_taps(0.375).astype(np.float64)
+    got = shift_band_limited(plane, 0.375, 0.0) if axis == 0 else shift_band_limited(plane, 0.0, 0.375)
+    lines = plane.astype(np.float64) if axis == 0 else plane.astype(np.float64).T
+    padded = np.pad(lines, ((0, 0), (7, 8)), mode="symmetric")
+    expected = sum(taps[k] * padded[:, k : k + lines.shape[1]] for k in range(16))
+    expected = expected if axis == 0 else expected.T
+    assert np.abs(got - expected).max() < 1e-6
+
+
 def test_whole_pixel_shifts_repeat_the_border_and_the_taps_sum_to_one():
     plane = np.arange(20, dtype=np.float32)[None, :].repeat(3, axis=0)
     assert np.array_equal(shift_band_limited(plane, 2.0, 0.0)[0], np.r_[np.arange(2, 20), 19, 19])
