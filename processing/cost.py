@@ -758,26 +758,25 @@ def _shift_into(planes: np.ndarray, amount: float, axis: int, out: np.ndarray) -
 _PHASE_STRIP_ROWS = 96
 
 
-def _phase_strip(bands: np.ndarray, c: int, axis: int, rows: tuple[int, int], out: np.ndarray) -> np.ndarray:
-    """Channel c's bands shifted by k / `_PHASES` px along `axis`, k = 0..`_PHASES`, on image rows `rows`
-    ([first, last)), written into the front of `out` and returned as a view: (P + 1, B, last - first, W). The bits of
-    the whole image's shifts (`_shift_into`): along y, each shift reads the bands `_SHIFT_HALF_TAPS` + 1 rows beyond
-    the strip (reflected only at the image's own borders), and those rows are dropped."""
-    h = bands.shape[2]
-    first, last = rows
+def _phase_rows(h: int, axis: int, rows: tuple[int, int]) -> tuple[int, int]:
+    """The image rows [lo, hi) that `_phase_strip` shifts for the rows `rows`: along y `_SHIFT_HALF_TAPS` + 1 rows
+    more on either side (within the image), which the shifts of the rows in `rows` read."""
     if axis == 0:
-        source = np.ascontiguousarray(bands[:, c, first:last])
-        stack = out[:, :, : last - first]
-        for k in range(_PHASES + 1):
-            _shift_into(source, k / _PHASES, axis, stack[k])
-        return stack
-    lo, hi = max(0, first - _SHIFT_HALF_TAPS - 1), min(h, last + _SHIFT_HALF_TAPS + 1)
+        return rows
+    return max(0, rows[0] - _SHIFT_HALF_TAPS - 1), min(h, rows[1] + _SHIFT_HALF_TAPS + 1)
+
+
+def _phase_strip(bands: np.ndarray, c: int, axis: int, rows: tuple[int, int], out: np.ndarray) -> np.ndarray:
+    """Channel c's bands shifted by k / `_PHASES` px along `axis`, k = 0..`_PHASES`, on the image rows
+    `_phase_rows(h, axis, rows)` ([lo, hi)), written into the front of `out` and returned as a view:
+    (P + 1, B, hi - lo, W), whose row 0 is image row lo. The bits of the whole image's shifts (`_shift_into`) on
+    the rows `rows`: along y the rows beyond them are there for the shifts to read (reflected only at the image's
+    own borders), and are themselves wrong at the strip's ends; nothing reads them there."""
+    lo, hi = _phase_rows(bands.shape[2], axis, rows)
     source = np.ascontiguousarray(bands[:, c, lo:hi])
-    moved = np.empty_like(source)
-    stack = out[:, :, : last - first]
+    stack = out[:, :, : hi - lo]
     for k in range(_PHASES + 1):
-        _shift_into(source, k / _PHASES, axis, moved)
-        stack[k] = moved[:, first - lo : last - lo]
+        _shift_into(source, k / _PHASES, axis, stack[k])
     return stack
 
 
@@ -819,10 +818,11 @@ def _phase_maps(bands, shifts, maps, window_px, noise_floor, out):
                 continue
             axis, amount = motion
             rows = _sample_rows(maps, amount, (first, last), h) if axis == 1 else (first, last)
+            lo, hi = _phase_rows(h, axis, rows)
             buffer = buffers[c]
-            if buffer is None or buffer.shape[2] < rows[1] - rows[0]:
-                buffer = buffers[c] = np.empty((_PHASES + 1, nbands, rows[1] - rows[0] + 32, w), np.float32)
-            stacks[c] = (_phase_strip(bands, c, axis, rows, buffer), axis, amount, rows[0])
+            if buffer is None or buffer.shape[2] < hi - lo:
+                buffer = buffers[c] = np.empty((_PHASES + 1, nbands, hi - lo + 32, w), np.float32)
+            stacks[c] = (_phase_strip(bands, c, axis, rows, buffer), axis, amount, lo)
         for start in range(0, count, batch):
             stop = min(start + batch, count)
             for k in range(start, stop):
