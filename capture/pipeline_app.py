@@ -967,6 +967,7 @@ def process_file(
     recorder: Any = None,
     max_megapixels: float | None = None,
     quality: str = "full",
+    reader: Callable[[Path], LoadedInput] | None = None,
 ) -> FileOutcome:
     """Process one photograph into `out_root/<name>/`; never raises for a bad file.
 
@@ -986,6 +987,7 @@ def process_file(
     `processing.pipeline.run_pipeline` (tests); `on_stage(name)` is called as each of `STAGES` finishes.
     `quality` ("full" or "preview", `capture.api.QUALITIES`) picks the pipeline's parameters; it is part of
     the settings key and of result.json's `settings`, so a preview result never passes for a full one.
+    `reader` replaces `read_input` (a batch's `capture.read_ahead.ReadAhead.read`, which gives the same planes).
     """
     started = time.perf_counter()
     api.check_quality(quality)
@@ -1031,6 +1033,7 @@ def process_file(
                         recording_id=recording_id,
                         live_recorder=recorder,
                         quality=quality,
+                        reader=reader,
                     )
                 _stamp_result(staging / RESULT_NAME, source, settings_key(profile, quality))
                 claim.commit(staging)
@@ -1055,13 +1058,14 @@ def _process(
     recording_id: str | None = None,
     live_recorder: Any = None,
     quality: str = "full",
+    reader: Callable[[Path], LoadedInput] | None = None,
 ) -> tuple[int, tuple[str, ...]]:
     run = pipeline or _default_pipeline()
     if pipeline is None:
         _load_kernels_once(profile, quality)  # on a helper thread, while the photograph is read
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    loaded = read_input(input_path)
+    loaded = (reader or read_input)(input_path)
     timings["read"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     _wait_for_kernels()  # never two parallel kernels at once: numba's fallback thread pool cannot take it
