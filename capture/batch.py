@@ -189,9 +189,9 @@ class _Job:
         return runner_failed(self.out_root, task, reason)
 
 
-# The stage after which the inline runner reads the next file. The dense search keeps both of 2 cores busy
-# (1.8 cores on average), the stages after it 1.0-1.4: read during the search, the read's core slowed the search's
-# two-thread kernels by about as much as it saved; read after it, it fills the idle core (docs/batch.md).
+# The stage after which the inline runner reads the next file. The dense search keeps 1.8 of 2 cores busy, the
+# stages after it 1.0-1.4: a read during the search competes with its two threads (of two rounds of six files, one
+# came out slower, one faster); after it, the read takes the idle core (both rounds faster; docs/batch.md).
 READ_AHEAD_AFTER = "disparity"
 
 
