@@ -151,6 +151,8 @@ class Runner(Protocol):
 
     def submit(self, task: Task) -> None: ...
 
+    def expect(self, path: Path | None) -> None: ...
+
     def wait(self, timeout_s: float) -> list[tuple[Task, FileOutcome]]: ...
 
     def cancel(self) -> list[Task]: ...
@@ -310,6 +312,9 @@ class PoolRunner:
         self.futures[future] = task
         self.by_key[_key(task)] = task
 
+    def expect(self, path: Path | None) -> None:
+        """Nothing: each worker reads its own file, on its one core."""
+
     def _drain_stages(self, block_s: float = 0.0) -> None:
         """Hand the stages that have arrived to the display; with `block_s`, wait that long for the next one."""
         import queue as queue_module
@@ -422,6 +427,9 @@ class DaskRunner:
         )
         self.futures[future] = task
         self.completed.add(future)
+
+    def expect(self, path: Path | None) -> None:
+        """Nothing: the cluster's workers read their own files."""
 
     def wait(self, timeout_s: float) -> list[tuple[Task, FileOutcome]]:
         if not self.futures:
@@ -781,9 +789,7 @@ def run_batch(
                 progress.started(task)
                 in_flight += 1
             if in_flight:
-                expect = getattr(runner, "expect", None)  # the inline runner reads the next file ahead
-                if expect is not None:
-                    expect(queue[0].input_path if queue else None)
+                runner.expect(queue[0].input_path if queue else None)  # the inline runner reads it ahead
                 for task, outcome in runner.wait(poll_interval_s if watch else 0.5):
                     in_flight -= 1
                     busy_names.discard(task.out_name)
