@@ -38,7 +38,7 @@ from mca.capture.pipeline_app import (
     process_file,
 )
 from mca.capture.pool_worker import init_pool_worker, stage_queue
-from mca.capture.read_ahead import ReadAhead
+from mca.capture.read_ahead import ReadAhead, StatKey, stat_key
 from mca.capture.threads import threads_per_worker
 from mca.processing.camera import CameraProfile
 
@@ -714,7 +714,7 @@ def run_batch(
     recording_id = batch_recording_id(Path(record)) if record is not None else None
     parts = out_root / f".mca-recording-parts-{uuid.uuid4().hex[:12]}" if record is not None else None
     names: dict[str, Path] = {}
-    known: dict[Path, tuple[int, int] | None] = {}  # path -> (size, mtime) when taken
+    known: dict[Path, StatKey | None] = {}  # path -> (device, inode, size, mtime) when taken
     passed_over: set[Path] = set()
     shots = 0
     sizes: dict[Path, tuple[int, int, float]] = {}
@@ -724,13 +724,6 @@ def run_batch(
     flying: list[Task] = []  # submitted, not finished
     last_activity = time.monotonic()
     finished_tasks: list[Task] = []
-
-    def signature(path: Path) -> tuple[int, int] | None:
-        try:
-            info = path.stat()
-        except OSError:
-            return None
-        return (info.st_size, info.st_mtime_ns)
 
     def look() -> None:
         nonlocal last_activity, shots
@@ -746,12 +739,12 @@ def run_batch(
             progress.discovered(len(known) + len(passed_over))
             progress.finished(task, outcome)
         for path in found.inputs:
-            if path in known and (not watch or known[path] == signature(path)):
+            if path in known and (not watch or known[path] == stat_key(path)):
                 continue  # taken already, and not changed since (a re-shot file is taken again)
             if watch and not _stable(path, sizes, settle_s):
                 last_activity = time.monotonic()  # still arriving: keep waiting for it
                 continue
-            known[path] = signature(path)
+            known[path] = stat_key(path)
             name = assign_name(path, names)
             queue.append(
                 Task(

@@ -30,21 +30,27 @@ from mca.capture.raw import read_policy
 StatKey = tuple[int, int, int, int]
 
 
-def stat_key(path: Path) -> StatKey | None:
-    """(device, inode, size, modification time in ns) of `path`, None when it cannot be stat'ed."""
+def _key(info: os.stat_result) -> StatKey:
+    return (info.st_dev, info.st_ino, info.st_size, info.st_mtime_ns)
+
+
+def stat_key(path: str | os.PathLike[str]) -> StatKey | None:
+    """(device, inode, size, modification time in ns) of `path`, None when it cannot be stat'ed: two equal keys
+    are the same bytes, short of a rewrite within the file system's time resolution that keeps the size."""
     try:
-        info = os.stat(path)
+        return _key(os.stat(path))
     except OSError:
         return None
-    return (info.st_dev, info.st_ino, info.st_size, info.st_mtime_ns)
 
 
 class _Slot:
     """One read on its thread: the file, its stat before the read, and the result or the failure."""
 
-    def __init__(self, path: Path, reader: Callable[[Path], LoadedInput], max_megapixels: float | None) -> None:
+    def __init__(
+        self, path: Path, before: StatKey, reader: Callable[[Path], LoadedInput], max_megapixels: float | None
+    ) -> None:
         self.path = path
-        self.before = stat_key(path)
+        self.before = before
         self.after: StatKey | None = None
         self.loaded: LoadedInput | None = None
         self.failed = False
@@ -74,13 +80,13 @@ class ReadAhead:
         """Begin reading `path` on a helper thread (under `read_policy(max_megapixels, photograph=True)`); nothing
         for what is not a regular file (a FIFO would never answer; the caller skips it with the reason)."""
         try:
-            regular = stat.S_ISREG(os.stat(path).st_mode)
+            info = os.stat(path)
         except OSError:
-            regular = False
-        if not regular:
+            info = None
+        if info is None or not stat.S_ISREG(info.st_mode):
             self.discard()
             return
-        slot = _Slot(Path(path), self._reader, max_megapixels)
+        slot = _Slot(Path(path), _key(info), self._reader, max_megapixels)
         with self._lock:
             self._slot = slot
         slot.thread.start()
@@ -98,11 +104,11 @@ class ReadAhead:
             slot, self._slot = self._slot, None
         if slot is not None and slot.path == path:
             slot.thread.join()
-            unchanged = slot.before is not None and slot.before == slot.after == stat_key(path)
+            unchanged = slot.before == slot.after == stat_key(path)
             if unchanged and not slot.failed and slot.loaded is not None:
                 self.used += 1
                 return slot.loaded
         return self._reader(path)
 
 
-__all__ = ["ReadAhead", "stat_key"]
+__all__ = ["ReadAhead", "StatKey", "stat_key"]

@@ -766,13 +766,13 @@ def _phase_rows(h: int, axis: int, rows: tuple[int, int]) -> tuple[int, int]:
     return max(0, rows[0] - _SHIFT_HALF_TAPS - 1), min(h, rows[1] + _SHIFT_HALF_TAPS + 1)
 
 
-def _phase_strip(bands: np.ndarray, c: int, axis: int, rows: tuple[int, int], out: np.ndarray) -> np.ndarray:
+def _phase_strip(bands: np.ndarray, c: int, axis: int, span: tuple[int, int], out: np.ndarray) -> np.ndarray:
     """Channel c's bands shifted by k / `_PHASES` px along `axis`, k = 0..`_PHASES`, on the image rows
-    `_phase_rows(h, axis, rows)` ([lo, hi)), written into the front of `out` and returned as a view:
-    (P + 1, B, hi - lo, W), whose row 0 is image row lo. The bits of the whole image's shifts (`_shift_into`) on
-    the rows `rows`: along y the rows beyond them are there for the shifts to read (reflected only at the image's
-    own borders), and are themselves wrong at the strip's ends; nothing reads them there."""
-    lo, hi = _phase_rows(bands.shape[2], axis, rows)
+    span = [lo, hi) (`_phase_rows` of the rows a strip samples), written into the front of `out` and returned as a
+    view: (P + 1, B, hi - lo, W), whose row 0 is image row lo. The bits of the whole image's shifts
+    (`_shift_into`) on the sampled rows: along y the rows beyond them are there for the shifts to read (reflected
+    only at the image's own borders), and are themselves wrong at the span's ends; nothing reads them there."""
+    lo, hi = span
     source = np.ascontiguousarray(bands[:, c, lo:hi])
     stack = out[:, :, : hi - lo]
     for k in range(_PHASES + 1):
@@ -822,7 +822,7 @@ def _phase_maps(bands, shifts, maps, window_px, noise_floor, out):
             buffer = buffers[c]
             if buffer is None or buffer.shape[2] < hi - lo:
                 buffer = buffers[c] = np.empty((_PHASES + 1, nbands, hi - lo + 32, w), np.float32)
-            stacks[c] = (_phase_strip(bands, c, axis, rows, buffer), axis, amount, lo)
+            stacks[c] = (_phase_strip(bands, c, axis, (lo, hi), buffer), axis, amount, lo)
         for start in range(0, count, batch):
             stop = min(start + batch, count)
             for k in range(start, stop):

@@ -135,6 +135,53 @@ def test_watch_takes_an_empty_file_only_once_it_is_written_and_a_reshot_file_aga
     assert lines[0].startswith("[1/1] done    late.png")
 
 
+def test_watch_takes_a_file_replaced_by_one_of_the_same_size_and_time_again(tmp_path: Path) -> None:
+    """A re-shot file that keeps the old one's size and modification time (a copy tool that preserves times) is
+    still another file: it is taken again by its inode, as the read-ahead tells files apart."""
+    folder = tmp_path / "in"
+    folder.mkdir()
+    shot = make_tiff(folder / "shot.tiff", 20, 28)
+    done_once = threading.Event()
+    kept: list[tuple[int, int]] = []
+
+    def writer() -> None:
+        deadline = time.monotonic() + 30
+        while not done_once.is_set() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.2)
+        old = shot.stat()
+        kept.append((old.st_size, old.st_mtime_ns))
+        data = bytearray(shot.read_bytes())
+        data[-1] ^= 0xFF  # the last pixel's last byte: the same size, other content
+        staging = tmp_path / "staging.tiff"
+        staging.write_bytes(bytes(data))
+        os.utime(staging, ns=(old.st_atime_ns, old.st_mtime_ns))
+        os.replace(staging, shot)
+
+    class Progress(LineProgress):
+        def finished(self, task, outcome):
+            super().finished(task, outcome)
+            done_once.set()
+
+    thread = threading.Thread(target=writer)
+    thread.start()
+    report = run_batch(
+        [folder],
+        tmp_path / "out",
+        PROFILE,
+        watch=True,
+        watch_timeout_s=2.0,
+        poll_interval_s=0.1,
+        settle_s=0.3,
+        pipeline=fake_pipeline,
+        progress=Progress(lambda line: None),
+    )
+    thread.join()
+    assert [o.status for o in report.outcomes] == ["done", "done"], [o.reason for o in report.outcomes]
+    now = shot.stat()
+    assert kept == [(now.st_size, now.st_mtime_ns)]  # the case meant: size and time as they were
+
+
 def test_a_bad_file_fails_with_its_reason_and_the_batch_goes_on(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     folder = inputs(tmp_path / "in", 2)
     (folder / "broken.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"\0" * 20)

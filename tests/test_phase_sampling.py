@@ -141,14 +141,15 @@ def test_strips_give_the_costs_of_the_whole_image(monkeypatch):
     made: list[tuple[int, int]] = []
     phase_strip = cost._phase_strip
 
-    def spy(bands, c, axis, rows, out):
-        made.append(rows)
-        return phase_strip(bands, c, axis, rows, out)
+    def spy(bands, c, axis, span, out):
+        made.append(span)
+        return phase_strip(bands, c, axis, span, out)
 
     monkeypatch.setattr(cost, "_phase_strip", spy)
     strips = cost_at(bands, APERTURE, maps, 9, 2e-3, sampling="phase")
     assert len(made) == 3 * 3  # 3 strips of 96 rows, 3 moving channels each
-    assert max(last - first for first, last in made) <= 96 + 2 * 4 + 2 * 8  # never the whole image
+    # never the whole image: the strip, its windows' rows, green's motion, and the shifts' taps beyond
+    assert max(last - first for first, last in made) <= 96 + 2 * 4 + 2 * 8 + 2 * (cost._SHIFT_HALF_TAPS + 1)
     monkeypatch.setattr(cost, "_PHASE_STRIP_ROWS", h)
     whole = cost_at(bands, APERTURE, maps, 9, 2e-3, sampling="phase")
     assert np.abs(strips - whole).max() < 1e-5
