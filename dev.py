@@ -2,7 +2,7 @@
 """Set up a fresh machine and run the project: `python3 dev.py demo`, `python3 dev.py test`, `python3 dev.py mutate`.
 
     python3 dev.py demo [mca demo options]      the main job, outputs in demo-out/
-    python3 dev.py test [pytest options]        the whole test suite (what CI runs)
+    python3 dev.py test [pytest options]        the whole test suite (what CI runs), one worker per core
     python3 dev.py mutate [MODULE...] [--sample N] [--jobs N] [--resume] [--fail-under PCT]
                                                 mutation testing (cosmic-ray): each module's score and its
                                                 surviving mutants; MODULE is a path (capture/batch.py,
@@ -124,7 +124,27 @@ def main(argv: list[str]) -> int:
         return subprocess.call([str(BIN / "python"), str(ROOT / "mutation" / "mutate.py"), *argv[1:]], env=env)
     ensure_system_tools()
     ensure_gltf_validator()
-    return subprocess.call([str(BIN / "python"), "-m", "pytest", *argv[1:]], env=env)
+    args = argv[1:]
+    workers = xdist_workers(args)
+    if workers > 1:
+        # one pytest worker per core (pytest-xdist); an idle OpenMP thread of one worker's compiled kernels
+        # would otherwise spin while the other worker holds its partner's core (docs/speed.md)
+        args = ["-n", str(workers), "--dist", "worksteal", *args]
+        env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    return subprocess.call([str(BIN / "python"), "-m", "pytest", *args], env=env)
+
+
+def xdist_workers(args: list[str]) -> int:
+    """pytest-xdist workers for `dev.py test ARGS`: one per core this process may use, at most 4 (each test's
+    kernels take two threads), unless ARGS choose (-n, -p no:xdist) or only collect (--co)."""
+    own = {"-n", "--numprocesses", "--co", "--collect-only", "no:xdist"}
+    if any(a in own or a.startswith(("-n", "--numprocesses=")) for a in args):
+        return 1
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = os.cpu_count() or 1
+    return max(1, min(cores, 4))
 
 
 if __name__ == "__main__":

@@ -390,11 +390,11 @@ class FolderClaim:
         """The finished result.json now in the folder, if any."""
         return read_result(self.final) if folder_kind(self.final) == "result" else None
 
-    def new_staging(self) -> Path:
-        """A fresh hidden folder beside NAME to write the new outputs into."""
-        staging = self.root / f".{self.name}{STAGING_MARK}{os.getpid()}-{uuid.uuid4().hex[:8]}"
-        staging.mkdir()
-        return staging
+    def staging_path(self) -> Path:
+        """A fresh name for a hidden folder beside NAME to write the new outputs into (this process's id and a
+        random part: whatever comes to be there is this run's). The caller makes it inside the `try` whose
+        `finally` discards it: a Ctrl-C that lands just after the mkdir must not leave it behind."""
+        return self.root / f".{self.name}{STAGING_MARK}{os.getpid()}-{uuid.uuid4().hex[:8]}"
 
     def commit(self, staging: Path) -> Path:
         """Make `staging` the folder NAME (files fsynced first); the previous folder is deleted afterwards."""

@@ -1019,8 +1019,9 @@ def process_file(
                 finished = _unchanged_reason(claim.existing_result(), source, key, profile, out_dir, quality)
                 if finished is not None:
                     return outcome("skipped", out_dir, reason=finished)
-            staging = claim.new_staging()
+            staging = claim.staging_path()
             try:
+                staging.mkdir()
                 with read_policy(max_megapixels=max_megapixels, photograph=True):
                     regions, notes = _process(
                         input_path,
