@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -90,44 +91,57 @@ def test_a_file_is_stable_only_when_complete_and_unchanged_for_the_settle_time(t
     assert not batch._stable(path, {path: (6, path.stat().st_mtime_ns, time.monotonic())}, 5.0)
 
 
-def test_watch_takes_an_empty_file_only_once_it_is_written_and_a_reshot_file_again(tmp_path: Path) -> None:
-    folder = tmp_path / "in"
-    folder.mkdir()
-    late = folder / "late.png"
-    late.write_bytes(b"")  # the camera created the file; its bytes come later
+def _watch_while(folder: Path, out: Path, writer: Callable[[threading.Event], None], sink: Callable[[str], None]):
+    """`run_batch --watch` on `folder` (quick polls, 0.3 s settle, stops 2 s after the last activity) while
+    `writer(done_once)` changes it on a thread; `done_once` is set when the first file has finished."""
     done_once = threading.Event()
-    lines: list[str] = []
-
-    def writer() -> None:
-        time.sleep(0.8)
-        make_png(tmp_path / "staging.png", 24, 32)
-        os.replace(tmp_path / "staging.png", late)
-        deadline = time.monotonic() + 30
-        while not done_once.is_set() and time.monotonic() < deadline:
-            time.sleep(0.05)
-        time.sleep(0.2)
-        make_tiff(tmp_path / "staging.tiff", 20, 28)  # re-shot: new content under the same name
-        os.replace(tmp_path / "staging.tiff", late)
 
     class Progress(LineProgress):
         def finished(self, task, outcome):
             super().finished(task, outcome)
             done_once.set()
 
-    thread = threading.Thread(target=writer)
+    thread = threading.Thread(target=writer, args=(done_once,))
     thread.start()
     report = run_batch(
         [folder],
-        tmp_path / "out",
+        out,
         PROFILE,
         watch=True,
         watch_timeout_s=2.0,
         poll_interval_s=0.1,
         settle_s=0.3,
         pipeline=fake_pipeline,
-        progress=Progress(lines.append),
+        progress=Progress(sink),
     )
     thread.join()
+    return report
+
+
+def _after(event: threading.Event) -> None:
+    """Until `event` is set (30 s at most), and a little longer."""
+    deadline = time.monotonic() + 30
+    while not event.is_set() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(0.2)
+
+
+def test_watch_takes_an_empty_file_only_once_it_is_written_and_a_reshot_file_again(tmp_path: Path) -> None:
+    folder = tmp_path / "in"
+    folder.mkdir()
+    late = folder / "late.png"
+    late.write_bytes(b"")  # the camera created the file; its bytes come later
+    lines: list[str] = []
+
+    def writer(done_once: threading.Event) -> None:
+        time.sleep(0.8)
+        make_png(tmp_path / "staging.png", 24, 32)
+        os.replace(tmp_path / "staging.png", late)
+        _after(done_once)
+        make_tiff(tmp_path / "staging.tiff", 20, 28)  # re-shot: new content under the same name
+        os.replace(tmp_path / "staging.tiff", late)
+
+    report = _watch_while(folder, tmp_path / "out", writer, lines.append)
     statuses = [o.status for o in report.outcomes]
     assert statuses == ["done", "done"], [o.reason for o in report.outcomes]
     assert all(o.input_path.name == "late.png" for o in report.outcomes)
@@ -141,14 +155,10 @@ def test_watch_takes_a_file_replaced_by_one_of_the_same_size_and_time_again(tmp_
     folder = tmp_path / "in"
     folder.mkdir()
     shot = make_tiff(folder / "shot.tiff", 20, 28)
-    done_once = threading.Event()
     kept: list[tuple[int, int]] = []
 
-    def writer() -> None:
-        deadline = time.monotonic() + 30
-        while not done_once.is_set() and time.monotonic() < deadline:
-            time.sleep(0.05)
-        time.sleep(0.2)
+    def writer(done_once: threading.Event) -> None:
+        _after(done_once)
         old = shot.stat()
         kept.append((old.st_size, old.st_mtime_ns))
         data = bytearray(shot.read_bytes())
@@ -158,25 +168,7 @@ def test_watch_takes_a_file_replaced_by_one_of_the_same_size_and_time_again(tmp_
         os.utime(staging, ns=(old.st_atime_ns, old.st_mtime_ns))
         os.replace(staging, shot)
 
-    class Progress(LineProgress):
-        def finished(self, task, outcome):
-            super().finished(task, outcome)
-            done_once.set()
-
-    thread = threading.Thread(target=writer)
-    thread.start()
-    report = run_batch(
-        [folder],
-        tmp_path / "out",
-        PROFILE,
-        watch=True,
-        watch_timeout_s=2.0,
-        poll_interval_s=0.1,
-        settle_s=0.3,
-        pipeline=fake_pipeline,
-        progress=Progress(lambda line: None),
-    )
-    thread.join()
+    report = _watch_while(folder, tmp_path / "out", writer, lambda line: None)
     assert [o.status for o in report.outcomes] == ["done", "done"], [o.reason for o in report.outcomes]
     now = shot.stat()
     assert kept == [(now.st_size, now.st_mtime_ns)]  # the case meant: size and time as they were
