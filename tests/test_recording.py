@@ -354,6 +354,28 @@ def test_two_recorders_coexist_and_merge(tmp_path: Path) -> None:
         merge_recordings([tmp_path / "missing.rrd"], tmp_path / "x.rrd")
 
 
+def test_a_merge_interrupted_half_way_leaves_no_half_written_file(tmp_path: Path, monkeypatch) -> None:
+    """Ctrl-C while `rerun rrd merge` writes: its temporary output is removed, the parts and any earlier merge stay."""
+    from mca.capture.recording import merge
+
+    parts = [tmp_path / "a.rrd", tmp_path / "b.rrd"]
+    for part in parts:
+        part.write_bytes(b"part")
+    merged = tmp_path / "merged.rrd"
+    merged.write_bytes(b"an earlier merge")
+
+    def interrupted(command, **kwargs):
+        Path(command[command.index("-o") + 1]).write_bytes(b"half")  # the merge had begun writing
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(merge, "rerun_executable", lambda: "rerun")
+    monkeypatch.setattr(merge.subprocess, "run", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        merge.merge_recordings(parts, merged)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.rrd", "b.rrd", "merged.rrd"]
+    assert merged.read_bytes() == b"an earlier merge"
+
+
 def test_plane_mesh_covers_only_the_opaque_part() -> None:
     from mca.processing.pinhole import PinholeCamera
 

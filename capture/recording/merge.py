@@ -22,14 +22,17 @@ def merge_recordings(paths: list[Path], out_path: Path) -> None:
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_path.with_name(f".{out_path.name}.{os.getpid()}.tmp.rrd")
-    proc = subprocess.run(
-        [exe, "rrd", "merge", *[str(p) for p in paths], "-o", str(tmp)],
-        env=child_environment(),
-        capture_output=True,
-        text=True,
-        check=False,
-    )
-    if proc.returncode != 0:
+    try:
+        proc = subprocess.run(
+            [exe, "rrd", "merge", *[str(p) for p in paths], "-o", str(tmp)],
+            env=child_environment(),
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        if proc.returncode != 0:
+            raise RuntimeError(f"rerun rrd merge failed for {', '.join(map(str, paths))}: {proc.stderr.strip()[-500:]}")
+        os.replace(tmp, out_path)
+    except BaseException:  # a failed merge, or Ctrl-C while it ran: no half-written merge left beside the parts
         tmp.unlink(missing_ok=True)
-        raise RuntimeError(f"rerun rrd merge failed for {', '.join(map(str, paths))}: {proc.stderr.strip()[-500:]}")
-    os.replace(tmp, out_path)
+        raise
