@@ -136,8 +136,9 @@ def main(argv: list[str]) -> int:
 
 def xdist_workers(args: list[str]) -> int:
     """pytest-xdist workers for `dev.py test ARGS`: one per core this process may use, at most 4 (each test's
-    kernels take two threads), unless ARGS choose (-n, -p no:xdist) or only collect (--co)."""
-    own = {"-n", "--numprocesses", "--co", "--collect-only", "no:xdist"}
+    kernels take two threads), unless ARGS choose (-n, -p no:xdist), only collect (--co) or want the terminal
+    (a debugger: --pdb, --trace; no capture: -s), which pytest-xdist's workers cannot give them. 1: add no -n."""
+    own = {"-n", "--numprocesses", "--co", "--collect-only", "no:xdist", "--pdb", "--trace", "-s", "--capture=no"}
     if any(a in own or a.startswith(("-n", "--numprocesses=")) for a in args):
         return 1
     try:

@@ -55,10 +55,11 @@ def main() -> int:
 
     aperture = load_profile("bando2008").aperture
     summary = []
-    for name in args.photos.split(","):
+    for given in args.photos.split(","):
+        name = given if given.endswith(".png") else f"{given}.png"  # "dog" or "dog.png"
         path = DATA / name
         if name not in PHOTOS:
-            print(f"{name}: no object check for it in tests/test_bando.py; choose from {', '.join(PHOTOS)}")
+            print(f"{given}: no object check for it in tests/test_bando.py; choose from {', '.join(PHOTOS)}")
             return 2
         if not path.exists():
             print(f"{path}: not found (the photographs are read from ../shared/data/bando2008, never committed)")
