@@ -36,7 +36,8 @@ def _key(info: os.stat_result) -> StatKey:
 
 def stat_key(path: str | os.PathLike[str]) -> StatKey | None:
     """(device, inode, size, modification time in ns) of `path`, None when it cannot be stat'ed: two equal keys
-    are the same bytes, short of a rewrite within the file system's time resolution that keeps the size."""
+    are the same bytes, short of a rewrite in place that keeps the size and the time (within the file system's
+    resolution, or set back)."""
     try:
         return _key(os.stat(path))
     except OSError:

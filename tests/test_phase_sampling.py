@@ -138,18 +138,25 @@ def test_strips_give_the_costs_of_the_whole_image(monkeypatch):
     ys, xs = np.mgrid[0:h, 0:w]
     wave = 12.0 * np.sin(ys / 17.0) + 0.03 * xs  # green moves half the disparity along y: up to 7.2 rows
     maps = np.stack([wave, wave + 0.4, -wave]).astype(np.float32)
-    made: list[tuple[int, int]] = []
-    phase_strip = cost._phase_strip
+    sampled: list[tuple[int, int, int]] = []  # (axis, first, last): the rows a strip's channel samples
+    made: list[tuple[int, int]] = []  # the rows whose shifted bands were made for it
+    phase_rows, phase_strip = cost._phase_rows, cost._phase_strip
 
-    def spy(bands, c, axis, span, out):
+    def rows_spy(h, axis, rows):
+        sampled.append((axis, *rows))
+        return phase_rows(h, axis, rows)
+
+    def strip_spy(bands, c, axis, span, out):
         made.append(span)
         return phase_strip(bands, c, axis, span, out)
 
-    monkeypatch.setattr(cost, "_phase_strip", spy)
+    monkeypatch.setattr(cost, "_phase_rows", rows_spy)
+    monkeypatch.setattr(cost, "_phase_strip", strip_spy)
     strips = cost_at(bands, APERTURE, maps, 9, 2e-3, sampling="phase")
     assert len(made) == 3 * 3  # 3 strips of 96 rows, 3 moving channels each
-    # never the whole image: the strip, its windows' rows, green's motion, and the shifts' taps beyond
-    assert max(last - first for first, last in made) <= 96 + 2 * 4 + 2 * 8 + 2 * (cost._SHIFT_HALF_TAPS + 1)
+    assert max(last - first for _, first, last in sampled) <= 96 + 2 * 4 + 2 * 8  # never the whole image
+    # each strip's bands are made for the rows it samples, and the shifts' taps beyond them (within the image)
+    assert made == [phase_rows(h, axis, (first, last)) for axis, first, last in sampled]
     monkeypatch.setattr(cost, "_PHASE_STRIP_ROWS", h)
     whole = cost_at(bands, APERTURE, maps, 9, 2e-3, sampling="phase")
     assert np.abs(strips - whole).max() < 1e-5
