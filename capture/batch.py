@@ -636,18 +636,18 @@ def make_runner(
     return InlineRunner(job) if workers == 1 else PoolRunner(job, workers)
 
 
-def _stable(path: Path, seen: dict[Path, tuple[int, int, float]], settle_s: float) -> bool:
-    """True once the file's size and modification time have not changed for `settle_s` seconds."""
-    try:
-        stat = path.stat()
-    except OSError:
+def _stable(path: Path, key: StatKey | None, seen: dict[Path, tuple[int, int, float]], settle_s: float) -> bool:
+    """True once the file's size and modification time (from its `stat_key`, None when it cannot be stat'ed)
+    have not changed for `settle_s` seconds."""
+    if key is None:
         return False
+    size, mtime_ns = key[2], key[3]
     now = time.monotonic()
     previous = seen.get(path)
-    if previous is None or previous[:2] != (stat.st_size, stat.st_mtime_ns):
-        seen[path] = (stat.st_size, stat.st_mtime_ns, now)
+    if previous is None or previous[:2] != (size, mtime_ns):
+        seen[path] = (size, mtime_ns, now)
         return False
-    return stat.st_size > 0 and now - previous[2] >= settle_s
+    return size > 0 and now - previous[2] >= settle_s
 
 
 def run_batch(
@@ -739,12 +739,13 @@ def run_batch(
             progress.discovered(len(known) + len(passed_over))
             progress.finished(task, outcome)
         for path in found.inputs:
-            if path in known and (not watch or known[path] == stat_key(path)):
+            key = stat_key(path)  # once per file and look
+            if path in known and (not watch or known[path] == key):
                 continue  # taken already, and not changed since (a re-shot file is taken again)
-            if watch and not _stable(path, sizes, settle_s):
+            if watch and not _stable(path, key, sizes, settle_s):
                 last_activity = time.monotonic()  # still arriving: keep waiting for it
                 continue
-            known[path] = stat_key(path)
+            known[path] = key
             name = assign_name(path, names)
             queue.append(
                 Task(

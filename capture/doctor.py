@@ -14,8 +14,6 @@ one live-view frame (the camera's display output is restored afterwards).
 from __future__ import annotations
 
 import datetime
-import os
-import tempfile
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
@@ -326,17 +324,10 @@ def write_report(report: DoctorReport, path: Path | None = None) -> Path:
         stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
         serial = "".join(ch for ch in report.serial_number if ch.isalnum())[:32] or "camera"
         path = Path(f"mca-doctor-{serial}-{stamp}.txt")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(report.text())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    from mca.capture.outputs import write_bytes_atomic  # numpy comes with it: only when a report is written
+
+    # the temporary is named, not made, before the writer's `try`: a Ctrl-C at any point leaves no part file
+    return write_bytes_atomic(Path(path), report.text().encode("utf-8"))
 
 
 __all__ = ["DoctorReport", "diagnose", "name_of", "write_report"]

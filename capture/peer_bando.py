@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import math
 import os
-import shutil
 import subprocess
 import tempfile
 from dataclasses import dataclass
@@ -145,8 +144,8 @@ def run_bando(
 
     k = labels_per_disparity(aperture)
     disp_min, disp_max = label_range(range_px, k)
-    work = Path(tempfile.mkdtemp(prefix="mca-bando-"))
-    try:
+    with tempfile.TemporaryDirectory(prefix="mca-bando-", ignore_cleanup_errors=True) as name:
+        work = Path(name)
         write_ppm(work / "in.ppm", srgb8(planes))
         started = time.perf_counter()
         try:
@@ -170,5 +169,3 @@ def run_bando(
                 f"{binary} wrote a {grey.shape[1]}x{grey.shape[0]} map for a {planes.shape[1]}x{planes.shape[0]} image"
             )
         return BandoRun(decode_labels(grey, disp_min, disp_max) / np.float32(k), (disp_min, disp_max), seconds)
-    finally:
-        shutil.rmtree(work, ignore_errors=True)

@@ -17,6 +17,7 @@ from test_process import fake_pipeline, make_png, make_tiff
 
 from mca.capture import batch
 from mca.capture.batch import BatchError, LineProgress, Task, discover, make_runner, print_summary, run_batch
+from mca.capture.read_ahead import stat_key
 from mca.devices.profiles import load_profile
 
 PROFILE = load_profile("paper-70d")
@@ -74,21 +75,24 @@ def test_make_runner_picks_the_runner_for_the_options(tmp_path: Path) -> None:
 
 
 def test_a_file_is_stable_only_when_complete_and_unchanged_for_the_settle_time(tmp_path: Path) -> None:
+    def stable(path: Path, seen: dict[Path, tuple[int, int, float]], settle_s: float) -> bool:
+        return batch._stable(path, stat_key(path), seen, settle_s)  # as the watch loop calls it: one stat a look
+
     path = tmp_path / "a.png"
     seen: dict[Path, tuple[int, int, float]] = {}
-    assert not batch._stable(tmp_path / "missing.png", seen, 0.0)
+    assert not stable(tmp_path / "missing.png", seen, 0.0)
     path.write_bytes(b"")
-    assert not batch._stable(path, seen, 0.0)  # first look: remembered
-    assert not batch._stable(path, seen, 0.0)  # empty: never complete
+    assert not stable(path, seen, 0.0)  # first look: remembered
+    assert not stable(path, seen, 0.0)  # empty: never complete
     path.write_bytes(b"12345")
-    assert not batch._stable(path, seen, 0.0)  # changed since the last look
-    assert batch._stable(path, seen, 0.0)
-    assert not batch._stable(path, seen, 3600.0)  # not yet settled for an hour
+    assert not stable(path, seen, 0.0)  # changed since the last look
+    assert stable(path, seen, 0.0)
+    assert not stable(path, seen, 3600.0)  # not yet settled for an hour
     path.write_bytes(b"123456")
-    assert not batch._stable(path, seen, 0.0)
+    assert not stable(path, seen, 0.0)
     seen[path] = (seen[path][0], seen[path][1], seen[path][2] - 5.0)  # looked at 5 s ago, unchanged since
-    assert batch._stable(path, seen, 5.0)
-    assert not batch._stable(path, {path: (6, path.stat().st_mtime_ns, time.monotonic())}, 5.0)
+    assert stable(path, seen, 5.0)
+    assert not stable(path, {path: (6, path.stat().st_mtime_ns, time.monotonic())}, 5.0)
 
 
 def _watch_while(folder: Path, out: Path, writer: Callable[[threading.Event], None], sink: Callable[[str], None]):

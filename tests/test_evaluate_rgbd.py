@@ -186,6 +186,7 @@ def test_bando_runner_encodes_its_input_and_decodes_its_labels(tmp_path) -> None
         "lo, hi = int(sys.argv[3]), int(sys.argv[4])\n"
         "g = ((3 - lo) * 255) // (hi - lo)\n"
         "open('depth_global.pgm', 'wb').write(b'P5\\n%d %d\\n255\\n' % (w, h) + bytes([g]) * (w * h))\n"
+        f"import os; open({str(tmp_path / 'cwd.txt')!r}, 'w').write(os.getcwd())\n"
     )
     fake.chmod(fake.stat().st_mode | stat.S_IXUSR)
     assert labels_per_disparity(PROFILE.aperture) == pytest.approx(0.5)  # red-blue disparity = 2 d (paper-70d)
@@ -193,6 +194,7 @@ def test_bando_runner_encodes_its_input_and_decodes_its_labels(tmp_path) -> None
     planes = np.random.default_rng(0).random((30, 40, 3)).astype(np.float32)
     answer = run_bando(fake, planes, PROFILE.aperture, (-11.3, 15.2))
     assert answer.labels == (-6, 8)
+    assert not Path((tmp_path / "cwd.txt").read_text()).exists()  # its working folder is gone
     np.testing.assert_array_equal(answer.disparity_px, np.full((30, 40), 6.0))  # d = 3 -> 6 px red-blue
     # every grey value the program can write decodes to its own label, for every range size up to 255 labels
     for n in (2, 15, 16, 60, 255):
