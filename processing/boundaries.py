@@ -21,6 +21,7 @@ import numpy as np
 
 from mca.processing.camera import FilterAperture
 from mca.processing.disparity import channel_shifts, parallel_map, warp_channels
+from mca.processing.features import percentile
 
 
 @dataclass(frozen=True)
@@ -63,7 +64,7 @@ def snap_boundaries(
     original = labels.astype(np.int32)
     labels = original.copy()
     height, width = labels.shape
-    white = float(np.percentile(planes, 99.5)) or 1.0
+    white = percentile(planes, 99.5) or 1.0
     shifts = channel_shifts(aperture)
     reach = float(np.abs(shifts).max())
     ids = [int(i) for i in np.unique(labels) if int(i) in models]

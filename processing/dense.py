@@ -28,7 +28,7 @@ import numpy as np
 
 from mca.processing.camera import FilterAperture
 from mca.processing.cost import CostInput, cost_input, cost_volume
-from mca.processing.features import display_gamma
+from mca.processing.features import display_gamma, percentile
 from mca.processing.jit import FASTMATH
 from mca.processing.sgm import aggregate
 
@@ -277,8 +277,8 @@ def occupied_range(
     disparity = quick if quick is not None else quick_disparity(planes, aperture, range_px, params)
     if disparity is None:
         return range_px
-    low = float(np.percentile(disparity, 0.2)) - params.range_margin_px - 4.0 * params.step_px
-    high = float(np.percentile(disparity, 99.8)) + params.range_margin_px + 4.0 * params.step_px
+    low = percentile(disparity, 0.2) - params.range_margin_px - 4.0 * params.step_px
+    high = percentile(disparity, 99.8) + params.range_margin_px + 4.0 * params.step_px
     return (max(range_px[0], low), min(range_px[1], high))
 
 

@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 
 from mca.processing.camera import CHANNELS, FilterAperture
+from mca.processing.features import percentile
 from mca.processing.sampling import remap_linear
 
 
@@ -169,7 +170,7 @@ def band_pass(planes: np.ndarray, sigma_fine_px: float = 0.8, sigma_coarse_px: f
     The fine blur band-limits the image so that the linear interpolation used by the matching is
     nearly exact (no pixel locking); log compression makes the measure independent of exposure.
     """
-    scale = float(np.percentile(planes, 99.5)) or 1.0
+    scale = percentile(planes, 99.5) or 1.0
     compressed = np.log1p(np.clip(planes, 0.0, None) * np.float32(32.0 / scale)).astype(np.float32)
     out = np.empty_like(compressed)
 

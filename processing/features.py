@@ -19,11 +19,39 @@ import numpy as np
 LOG_GAIN = 32.0  # log1p(LOG_GAIN * v / white): nearly logarithmic above 3 % of white, linear below
 
 
+def percentile(values: np.ndarray, q: float) -> float:
+    """`np.percentile(values, q)` (linear interpolation, finite values), interpolated in float64 whatever the
+    dtype: the same bits under every numpy. numpy 2.0 and 2.4 interpolate a float32 array's percentile with
+    different roundings (a capture's white 0.35143268 against 0.35143256): the log planes, and from them every
+    disparity, then differed between installs. The order statistics themselves are exact."""
+    flat = np.ravel(values)
+    position = (float(q) / 100.0) * (flat.size - 1)
+    below = int(np.floor(position))
+    above = min(below + 1, flat.size - 1)
+    part = np.partition(flat, (below, above))
+    low, high = float(part[below]), float(part[above])
+    t = position - below
+    step = high - low
+    return high - step * (1.0 - t) if t >= 0.5 else low + step * t
+
+
 def log_compress(planes: np.ndarray) -> np.ndarray:
     """(H, W, 3) linear planes -> float32 log1p(32 v / white), white = the 99.5th percentile."""
-    white = float(np.percentile(planes, 99.5)) or 1.0
+    white = percentile(planes, 99.5) or 1.0
     scaled = np.clip(planes, 0.0, None).astype(np.float32) * np.float32(LOG_GAIN / white)
     return np.log1p(scaled)
+
+
+def gaussian_blur(plane: np.ndarray, sigma_px: float) -> np.ndarray:
+    """`cv2.GaussianBlur(plane, (0, 0), sigma_px, borderType=cv2.BORDER_REFLECT)` of an (H, W) float32 plane, with
+    the same bits under OpenCV 4.10 and 5.0: those round a row's last few pixels differently when the width is not
+    a multiple of their vector width (the quarter- and half-size planes, 342 and 684 px wide). The plane is
+    reflected out to a multiple of 32 px (at least 32 more: more than the kernel's reach), blurred and cut back,
+    which is the reflected blur of the plane itself with OpenCV 4.10's bits."""
+    width = plane.shape[1]
+    pad = (-width) % 32 + 32
+    wide = cv2.copyMakeBorder(plane, 0, 0, 0, pad, cv2.BORDER_REFLECT)
+    return np.ascontiguousarray(cv2.GaussianBlur(wide, (0, 0), sigma_px, borderType=cv2.BORDER_REFLECT)[:, :width])
 
 
 def feature_bands(
@@ -45,11 +73,11 @@ def _band_filters(log: np.ndarray, gradient_sigma_px: float, dog_sigmas_px: tupl
     dog = np.empty_like(log)
     for c in range(log.shape[2]):
         plane = np.ascontiguousarray(log[..., c])
-        smooth = cv2.GaussianBlur(plane, (0, 0), gradient_sigma_px, borderType=cv2.BORDER_REFLECT)
+        smooth = gaussian_blur(plane, gradient_sigma_px)
         gx[..., c] = cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REFLECT) * np.float32(0.125)
         gy[..., c] = cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REFLECT) * np.float32(0.125)
-        fine = cv2.GaussianBlur(plane, (0, 0), dog_sigmas_px[0], borderType=cv2.BORDER_REFLECT)
-        coarse = cv2.GaussianBlur(plane, (0, 0), dog_sigmas_px[1], borderType=cv2.BORDER_REFLECT)
+        fine = gaussian_blur(plane, dog_sigmas_px[0])
+        coarse = gaussian_blur(plane, dog_sigmas_px[1])
         dog[..., c] = fine - coarse
     return [gx, gy, dog]
 
@@ -107,7 +135,9 @@ def feature_noise(
     for b, band in enumerate(bands):
         for c in range(3):
             total, together = _lag_means(np.ascontiguousarray(band[..., c]))
-            noise = float(np.mean(variance[c])) * gain[b]
+            # summed in float64 and rounded to float32: numpy 2.0 and 2.4 sum a float32 plane in other orders
+            # (89678.836 against 89678.859), and a float64 sum's last bit could still differ; its float32 does not
+            noise = float(np.float32(np.mean(variance[c], dtype=np.float64))) * gain[b]
             signal = total - noise
             for lag in (1, 2, 3):
                 for axis in (0, 1):
@@ -163,7 +193,7 @@ def _brightness_noise(log_plane: np.ndarray, bins: int = 24) -> np.ndarray:
             centres.append(float(np.median(level[inside])))
             spreads.append(float(np.quantile(patch_energy[inside], 0.1)) / _CHI2_16_Q10)
     coefficients = _photon_read_curve(np.array(centres), np.array(spreads))
-    smooth = cv2.GaussianBlur(log_plane, (0, 0), 1.0, borderType=cv2.BORDER_REFLECT).astype(np.float64)
+    smooth = gaussian_blur(log_plane, 1.0).astype(np.float64)
     return _log_noise(coefficients, smooth).astype(np.float32)
 
 
@@ -308,5 +338,5 @@ def signal_weight(
 def display_gamma(planes: np.ndarray) -> np.ndarray:
     """Linear planes -> float32 values in [0, 1] with a 1/2.2 gamma, white at the 99.5th percentile: the image
     colour distances are measured on (segmentation, edge-adaptive penalties)."""
-    white = float(np.percentile(planes, 99.5)) or 1.0
+    white = percentile(planes, 99.5) or 1.0
     return np.power(np.clip(planes.astype(np.float32) / np.float32(white), 0.0, 1.0), np.float32(1.0 / 2.2))

@@ -7,6 +7,7 @@ import numpy as np
 
 from mca.processing.camera import FilterAperture
 from mca.processing.disparity import warp_channels
+from mca.processing.features import percentile
 from mca.processing.result import MultiPlaneImage
 
 
@@ -41,7 +42,7 @@ def multi_plane_images(
     label map: building them all up front cost a second and one full-size RGBA copy per region.
     """
     step = max(1, int(np.sqrt(image.shape[0] * image.shape[1] / 250_000)))
-    scale = float(np.percentile(image[::step, ::step], 99.5)) or 1.0
+    scale = percentile(image[::step, ::step], 99.5) or 1.0
     display = np.multiply(image, np.float32(1.0 / scale), dtype=np.float32)
     np.clip(display, 0.0, 1.0, out=display)
     layers = []

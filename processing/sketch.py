@@ -1,7 +1,9 @@
 """The 2.1D sketch (paper section IV-A, eq. 1): the image as L regions with their disparity and occlusion order.
 
 Regions are built from the surfaces (`processing.surfaces`): neighbouring superpixels whose planes meet along
-their shared boundary (within `continuity_px`) and whose colours are alike belong to one object; regions
+their shared boundary (within `continuity_px`) and whose colours are alike belong to one object (along the
+boundary, an edge whose planes are more than `gap_clip_px` apart counts as that much: it is a discontinuity
+whatever its size, and one stray plane cannot keep two parts of a surface apart); regions
 smaller than `min_region_fraction` of the image join the neighbour they meet most continuously. A chain of
 superpixels that lean across a depth step the dense disparity smoothed (two overlapping cards of one colour) can
 join two objects with every link continuous; such a region's pixel levels fall into two groups with few between,
@@ -30,6 +32,11 @@ class SketchParams:
     """Parameters of the region decomposition (pixels of the analysis grid)."""
 
     continuity_px: float = 0.6  # neighbouring regions whose planes meet within this (mean over the boundary) join
+    # a boundary edge's |plane gap| counts at most this much in that mean (0: no limit): twice `continuity_px`,
+    # an edge this far apart is a discontinuity whatever its size. Unlimited, one superpixel whose plane strayed
+    # (a weakly textured one: on dog.png's wall sheet 1.96 px along 32 of the 178 px it shares with the cloth)
+    # outweighed the rest of the boundary (0.07-0.59 px), and the wall came out in two
+    gap_clip_px: float = 1.2
     colour_distance: float = 0.35  # ... when their mean display colours are at most this far apart
     same_depth_px: float = 0.2  # then regions whose planes meet within this join whatever their colours (0: off)
     split_valley: float = 0.3  # a region whose pixel levels' valley is below this share of its peaks splits (0: off)
@@ -96,8 +103,9 @@ def _occlusions(pair_gap: dict[tuple[int, int], float], ids: list[int], margin_p
     return {k: sorted(v) for k, v in occludes.items()}
 
 
-def _boundary_gaps(surfaces: Surfaces) -> tuple[np.ndarray, np.ndarray]:
-    """Signed and absolute mean (P_j - P_i) of each adjacent superpixel pair (i, j) over their shared boundary."""
+def _boundary_gaps(surfaces: Surfaces, clip_px: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Signed and absolute mean (P_j - P_i) of each adjacent superpixel pair (i, j) over their shared boundary;
+    with `clip_px` > 0 each edge's |P_j - P_i| counts at most that much in the absolute mean."""
     planes = surfaces.planes
     lo, hi, px, py = boundary_edges(surfaces.labels)  # evaluated at the boundary edges' midpoints
     count = surfaces.count
@@ -106,7 +114,8 @@ def _boundary_gaps(surfaces: Surfaces) -> tuple[np.ndarray, np.ndarray]:
     index = np.searchsorted(pair_keys, key)
     gap = _edge_gaps(planes, lo, hi, px, py)
     counts = np.maximum(np.bincount(index, minlength=pair_keys.size), 1)
-    return np.bincount(index, gap, pair_keys.size) / counts, np.bincount(index, np.abs(gap), pair_keys.size) / counts
+    size = np.abs(gap) if clip_px <= 0 else np.minimum(np.abs(gap), clip_px)
+    return np.bincount(index, gap, pair_keys.size) / counts, np.bincount(index, size, pair_keys.size) / counts
 
 
 def _merge_continuous(surfaces: Surfaces, abs_gaps: np.ndarray, params: SketchParams) -> np.ndarray:
@@ -392,7 +401,7 @@ def build_sketch(
     """Regions, planes and occlusion order from the surfaces (see the module docstring).
 
     `disparity` (H, W) is the surface disparity on the analysis grid, `confidence` the dense confidence."""
-    gaps, abs_gaps = _boundary_gaps(surfaces)
+    gaps, abs_gaps = _boundary_gaps(surfaces, params.gap_clip_px)
     root = _merge_continuous(surfaces, abs_gaps, params)
     if params.split_valley > 0:
         root = _split_at_valleys(surfaces, disparity, root, params)

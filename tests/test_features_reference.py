@@ -56,3 +56,32 @@ def test_the_derivative_bands_of_a_log_ramp_are_its_slope_and_the_dog_of_a_flat_
     flat = feature_bands(np.full((24, 24, 3), 0.4))
     for band in flat:
         np.testing.assert_allclose(band, 0.0, atol=1e-6)
+
+
+@pytest.mark.parametrize("size", [1, 2, 7, 1000, 4097])
+def test_percentile_is_numpys_taken_in_float64_whatever_the_dtype(size: int) -> None:
+    """`features.percentile` interpolates in float64 (numpy 2.0 and 2.4 round a float32 array's percentile
+    differently): numpy's linear percentile of the same values as float64, to the bit."""
+    from mca.processing.features import percentile
+
+    values = np.random.default_rng(size).normal(0.3, 0.1, size).astype(np.float32)
+    for q in (0.0, 0.2, 37.5, 50.0, 99.5, 99.8, 100.0):
+        expected = float(np.percentile(values.astype(np.float64), q))
+        assert percentile(values, q) == expected, q
+        assert percentile(values.reshape(1, -1, 1), q) == expected  # any shape: all its values
+
+
+@pytest.mark.parametrize("width", [31, 342, 684, 1368])
+@pytest.mark.parametrize("sigma_px", [0.6, 1.5])
+def test_the_padded_gaussian_blur_is_opencvs_reflected_blur(width: int, sigma_px: float) -> None:
+    """`features.gaussian_blur` pads the right edge to a multiple of 32 px so that every release of OpenCV takes
+    the same vector path there: the result is OpenCV's reflected blur of the plane, to float32 rounding."""
+    import cv2
+
+    from mca.processing.features import gaussian_blur
+
+    plane = np.random.default_rng(width).uniform(0.0, 1.0, (23, width)).astype(np.float32)
+    expected = cv2.GaussianBlur(plane, (0, 0), sigma_px, borderType=cv2.BORDER_REFLECT)
+    got = gaussian_blur(plane, sigma_px)
+    assert got.shape == plane.shape and got.dtype == np.float32 and got.flags.c_contiguous
+    np.testing.assert_allclose(got, expected, rtol=0, atol=2e-6)

@@ -83,6 +83,20 @@ def test_the_same_depth_pass_joins_unlike_neighbours_whose_planes_meet(gap_px, s
         assert len(sketch(surfaces).regions) == regions
 
 
+def test_one_stray_plane_along_a_boundary_does_not_keep_a_surface_apart():
+    """A grey surface of three superpixels: 0 on the left, 1 and 2 on the right, all at 1 px, but 2's plane (rows
+    36-59) is steep (0.3 px a row, as a weakly textured superpixel's fit can be) and misses 0 by 0.15-7 px along its
+    24 px of their boundary while meeting 1. Every edge counts at most `gap_clip_px` (1.2 px): the mean over the
+    boundary is 0.41-0.44 px, within `continuity_px`, and the surface is one region. Unclipped (0), that one
+    superpixel's 3.6 px mean makes it 1.35-1.44 px, and the surface came out in two."""
+    labels = halves()
+    labels[36:, 40:] = 2
+    surfaces = surfaces_of(labels, {0: 1.0, 1: 1.0, 2: 1.0}, {0: GREY, 1: GREY, 2: GREY})
+    surfaces.planes[2] = surfaces.fitted[2] = (0.0, 0.3, 1.0 - 0.3 * 35.5)  # 1 px on its boundary with 1 (y = 35.5)
+    assert len(sketch(surfaces).regions) == 1
+    assert len(sketch(surfaces, SketchParams(gap_clip_px=0.0)).regions) == 2
+
+
 def test_a_small_region_joins_the_neighbour_it_continues_whatever_its_colour():
     labels = np.zeros((60, 90), np.int32)
     labels[:, 45:] = 1
