@@ -29,7 +29,7 @@ import numpy as np
 
 from mca.processing.camera import CHANNELS, FilterAperture
 from mca.processing.features import percentile
-from mca.processing.sampling import remap_linear
+from mca.processing.sampling import remap_cubic, remap_linear
 
 
 def channel_shifts(aperture: FilterAperture) -> np.ndarray:
@@ -114,10 +114,12 @@ def warp_channels(
 
 
 def _remap(src: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, interpolation: int) -> np.ndarray:
-    """`cv2.remap` with replicated borders; bilinear sampling by our own exact kernel (`processing.sampling`: OpenCV
-    before 5 rounds the coordinates to 1/32 px), any other interpolation by OpenCV."""
+    """`cv2.remap` with replicated borders; bilinear and cubic sampling by our own exact kernels
+    (`processing.sampling`: OpenCV rounds the coordinates, and its releases differently), any other by OpenCV."""
     if interpolation == cv2.INTER_LINEAR:
         return remap_linear(src, map_x, map_y)
+    if interpolation == cv2.INTER_CUBIC:
+        return remap_cubic(src, map_x, map_y)
     return cv2.remap(src, map_x, map_y, interpolation, borderMode=cv2.BORDER_REPLICATE)
 
 

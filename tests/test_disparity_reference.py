@@ -16,7 +16,7 @@ from scipy import ndimage
 
 from mca.devices.profiles import load_profile
 from mca.processing import disparity as dsp
-from mca.processing.sampling import remap_linear
+from mca.processing.sampling import remap_cubic, remap_linear
 
 APERTURE = load_profile("paper-70d").aperture
 # A farther object (disparity d > 0) shows each channel displaced toward its filter's side by d * centre / 12 mm,
@@ -112,13 +112,20 @@ def test_warp_channels_with_a_per_pixel_map_matches_the_reference_sampling(origi
         np.testing.assert_allclose(out[..., c], expected, atol=2e-6)
 
 
+def sampling_maps(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(20, 33) float32 coordinates into a 37 x 45 plane: random, inside and past every border, and in row 0 four
+    positions finer than OpenCV's 1/32 px grid, at x = 3 + (0, 1/128, 1/64, 3/128), y = 5."""
+    rng = np.random.default_rng(seed)
+    map_x = rng.uniform(-6.0, 51.0, (20, 33)).astype(np.float32)
+    map_y = rng.uniform(-6.0, 43.0, (20, 33)).astype(np.float32)
+    map_x[0, :4] = np.float32(3.0) + np.array([0.0, 1 / 128, 1 / 64, 3 / 128], np.float32)
+    map_y[0, :4] = 5.0
+    return map_x, map_y
+
+
 def test_remap_linear_is_exact_bilinear_sampling_with_replicated_borders() -> None:
     plane = texture(37, 45, seed=8).astype(np.float32)
-    rng = np.random.default_rng(9)
-    map_x = rng.uniform(-6.0, 51.0, (20, 33)).astype(np.float32)  # inside, and past every border
-    map_y = rng.uniform(-6.0, 43.0, (20, 33)).astype(np.float32)
-    map_x[0, :4] = np.float32(3.0) + np.array([0.0, 1 / 128, 1 / 64, 3 / 128], np.float32)  # finer than 1/32 px
-    map_y[0, :4] = 5.0
+    map_x, map_y = sampling_maps(9)
     map_x[3, 3] = np.nan
     expected = bilinear(plane, map_x.astype(np.float64), map_y.astype(np.float64))
     out = remap_linear(plane, map_x, map_y)
@@ -134,6 +141,52 @@ def test_remap_linear_is_exact_bilinear_sampling_with_replicated_borders() -> No
         remap_linear(np.zeros((4, 4, 3), np.float32), map_x, map_y)
     with pytest.raises(ValueError, match="two maps"):
         remap_linear(plane, map_x, map_y[:5])
+
+
+def keys_cubic(plane: np.ndarray, xs: np.ndarray, ys: np.ndarray, a: float = -0.75) -> np.ndarray:
+    """Keys' cubic convolution (the kernel as Keys 1981 writes it, piecewise in |s|) at (xs, ys) in float64, taps'
+    indices clamped to the image (replicated borders)."""
+
+    def kernel(s: np.ndarray) -> np.ndarray:
+        s = np.abs(s)
+        near = ((a + 2) * s - (a + 3)) * s**2 + 1
+        far = a * s**3 - 5 * a * s**2 + 8 * a * s - 4 * a
+        return np.where(s <= 1, near, np.where(s < 2, far, 0.0))
+
+    h, w = plane.shape
+    x0, y0 = np.floor(xs).astype(int), np.floor(ys).astype(int)
+    out = np.zeros(xs.shape)
+    for m in range(-1, 3):
+        for n in range(-1, 3):
+            rows, cols = np.clip(y0 + m, 0, h - 1), np.clip(x0 + n, 0, w - 1)
+            out += kernel(ys - (y0 + m)) * kernel(xs - (x0 + n)) * plane[rows, cols]
+    return out
+
+
+def test_remap_cubic_is_keys_cubic_at_the_exact_coordinates() -> None:
+    """The all-in-focus image's sampler: Keys' cubic (a = -0.75, OpenCV's INTER_CUBIC) with replicated borders,
+    at exact coordinates; on OpenCV's own 1/32 px grid of coordinates, OpenCV's remap under any release."""
+    plane = texture(37, 45, seed=10).astype(np.float32)
+    map_x, map_y = sampling_maps(11)
+    map_x[3, 3] = np.inf
+    out = remap_cubic(plane, map_x, map_y)
+    finite = np.isfinite(map_x)
+    expected = keys_cubic(plane.astype(np.float64), map_x[finite].astype(np.float64), map_y[finite].astype(np.float64))
+    np.testing.assert_allclose(out[finite], expected, atol=2e-6)
+    assert np.isnan(out[3, 3])
+    assert np.all(np.diff(out[0, :4]) != 0)  # four positions within 1/32 px, four values
+    # at whole pixels it returns the samples themselves; a constant stays constant everywhere
+    grid_y, grid_x = np.mgrid[0:37, 0:45].astype(np.float32)
+    np.testing.assert_allclose(remap_cubic(plane, grid_x, grid_y), plane, atol=1e-6)
+    np.testing.assert_allclose(remap_cubic(np.full((9, 9), 0.3, np.float32), map_x, map_y)[finite], 0.3, atol=1e-6)
+    on_grid_x = (np.round(map_x * 32) / 32).astype(np.float32)
+    on_grid_y = (np.round(map_y * 32) / 32).astype(np.float32)
+    opencv = cv2.remap(plane, on_grid_x, on_grid_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+    np.testing.assert_allclose(remap_cubic(plane, on_grid_x, on_grid_y)[finite], opencv[finite], atol=2e-6)
+    with pytest.raises(ValueError, match="remap_cubic samples one plane"):
+        remap_cubic(np.zeros((4, 4, 3), np.float32), map_x, map_y)
+    with pytest.raises(ValueError, match="remap_cubic needs two maps"):
+        remap_cubic(plane, map_x, map_y[:5])
 
 
 def test_parallel_map_keeps_order_uses_the_workers_and_does_not_deadlock_inside_them() -> None:
