@@ -347,3 +347,24 @@ def test_a_tiff_whose_strip_tags_are_text_is_refused_not_a_traceback(tmp_path):
         read_raw(path)
     except RawReadError:
         pass
+
+
+def test_the_command_line_leaves_its_objects_out_of_the_last_collection(monkeypatch):
+    """`cli.main` freezes what is alive once its command returned (`skip_last_collection`), so the interpreter's
+    shutdown does not walk it; whatever the command's exit code."""
+    import gc
+
+    from mca.capture import cli
+
+    def command() -> None:
+        raise SystemExit(3)
+
+    monkeypatch.setattr(cli, "app", command)
+    gc.unfreeze()
+    try:
+        with pytest.raises(SystemExit) as ended:
+            cli.main()
+        assert ended.value.code == 3
+        assert gc.get_freeze_count() > 0
+    finally:
+        gc.unfreeze()
