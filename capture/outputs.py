@@ -84,54 +84,84 @@ def _png_chunk(kind: bytes, data: bytes) -> bytes:
     return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(data, zlib.crc32(kind)))
 
 
-def _png_scanlines(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(H, 1 + row bytes) filtered scanlines (PNG spec 9) and which rows are all zero.
+_ADLER_BASE = 65521  # Adler-32's modulus (RFC 1950)
 
-    Rows with data take filter Up (type 2), which removes the vertical redundancy of photos and
-    upsampled maps; zero rows take None (type 0), so they are zero bytes, and the long empty
-    stretches of a layer compress to reused segments (`_deflate_zlib`) without being filtered.
+
+def _adler32_zeros(adler: int, count: int) -> int:
+    """`zlib.adler32(bytes(count), adler)` without the bytes: zeros leave the sum A as it is and add A to the
+    running sum B once per byte."""
+    a, b = adler & 0xFFFF, adler >> 16
+    return (((b + count * a) % _ADLER_BASE) << 16) | a
+
+
+def _row_bytes(image: np.ndarray) -> np.ndarray:
+    """(H, row bytes) uint8 view of an image's samples as PNG stores them (16-bit big-endian)."""
+    samples = image.astype(">u2") if image.dtype == np.uint16 else image
+    return np.ascontiguousarray(samples).reshape(samples.shape[0], -1).view(np.uint8)
+
+
+def _zero_rows(rows: np.ndarray) -> np.ndarray:
+    """Which rows of (H, row bytes) uint8 are all zero."""
+    words = rows.view(np.uint64) if rows.shape[1] % 8 == 0 else rows
+    return np.asarray(~words.any(axis=1), dtype=bool)
+
+
+def _png_idat(window: np.ndarray, origin_px: tuple[int, int], canvas_px: tuple[int, int]) -> bytes:
+    """The zlib stream (RFC 1950) of the filtered scanlines (PNG spec 9) of a canvas of `canvas_px` (H, W) pixels
+    that is zero everywhere but where `window` lies, its top-left pixel at `origin_px` (row, column).
+
+    Rows with data take filter Up (type 2), which removes the vertical redundancy of photos and upsampled maps;
+    zero rows take None (type 0), so they are zero bytes. The stream is deflated in independent segments of whole
+    rows (`DEFLATE_SEGMENT_BYTES`), each ending with a full flush (byte-aligned, no back references across it),
+    then an empty final block: a segment of zero rows is the same bytes wherever it lies and is deflated once
+    (`_deflated_zeros`). Segment by segment, only the rows that cross the window are ever made: a layer of a
+    20 MP capture (2736 x 1824 RGBA) is its region's rows, not 20 MB of RGBA and as much again of scanlines. Same
+    input, same bytes.
     """
-    samples = image.astype(">u2") if image.dtype == np.uint16 else image  # PNG stores 16-bit big-endian
-    rows = samples.reshape(samples.shape[0], -1).view(np.uint8)
-    height, width = rows.shape
-    words = rows.view(np.uint64) if width % 8 == 0 else rows
-    zero = np.asarray(~words.any(axis=1), dtype=bool)
-    lines = np.zeros((height, width + 1), np.uint8)
-    filled = np.flatnonzero(~zero)
-    if filled.size:
-        first, last = int(filled[0]), int(filled[-1]) + 1  # outside [first, last) all rows are zero
-        lines[first:last, 0] = 2
-        lines[first, 1:] = rows[first]
-        np.subtract(rows[first + 1 : last], rows[first : last - 1], out=lines[first + 1 : last, 1:])
-        if filled.size < last - first:
-            lines[first:last][zero[first:last]] = 0
-    return lines, zero
+    height, width = canvas_px
+    top, left = origin_px
+    rows = _row_bytes(window)
+    pixel_bytes = rows.shape[1] // window.shape[1]
+    row_bytes = width * pixel_bytes
+    first_col = 1 + left * pixel_bytes  # the window's first byte in a scanline (after the filter type)
+    last_col = first_col + rows.shape[1]
+    zero = _zero_rows(rows)
+    line_bytes = row_bytes + 1
+    rows_per_segment = max(1, DEFLATE_SEGMENT_BYTES // line_bytes)
+    parts = [b"\x78\x01"]
+    adler = 1
+    for start in range(0, height, rows_per_segment):
+        stop = min(start + rows_per_segment, height)
+        lo, hi = max(start, top), min(stop, top + rows.shape[0])  # the canvas rows of this segment in the window
+        size = (stop - start) * line_bytes
+        if lo >= hi or zero[lo - top : hi - top].all():
+            parts.append(_deflated_zeros(size))
+            adler = _adler32_zeros(adler, size)
+            continue
+        lines = np.zeros((stop - start, line_bytes), np.uint8)
+        inside = lines[lo - start : hi - start]
+        current = rows[lo - top : hi - top]
+        data = inside[:, first_col:last_col]
+        if lo > top:  # Up: each row less the row above it, whose bytes are zero above the window
+            np.subtract(current, rows[lo - top - 1 : hi - top - 1], out=data)
+        else:
+            data[0] = current[0]
+            np.subtract(current[1:], current[:-1], out=data[1:])
+        empty = zero[lo - top : hi - top]
+        data[empty] = 0
+        inside[~empty, 0] = 2
+        compressor = zlib.compressobj(PNG_DEFLATE_LEVEL, zlib.DEFLATED, -15, 9, zlib.Z_RLE)
+        parts.append(compressor.compress(lines.data) + compressor.flush(zlib.Z_FULL_FLUSH))
+        adler = zlib.adler32(lines.data, adler)
+    parts.append(b"\x03\x00")  # empty final fixed-Huffman block
+    parts.append(struct.pack(">I", adler))
+    return b"".join(parts)
 
 
 @functools.lru_cache(maxsize=32)
 def _deflated_zeros(size: int) -> bytes:
     compressor = zlib.compressobj(PNG_DEFLATE_LEVEL, zlib.DEFLATED, -15, 9, zlib.Z_RLE)
     return compressor.compress(bytes(size)) + compressor.flush(zlib.Z_FULL_FLUSH)
-
-
-def _deflate_zlib(lines: np.ndarray, zero_rows: np.ndarray) -> bytes:
-    """A zlib stream (RFC 1950) of whole rows, deflated in independent segments; all-zero segments are reused.
-
-    Each segment ends with a full flush (byte-aligned, no back references across it); the stream ends
-    with an empty final block. Same input, same bytes.
-    """
-    rows_per_segment = max(1, DEFLATE_SEGMENT_BYTES // lines.shape[1])
-    parts = [b"\x78\x01"]
-    for start in range(0, lines.shape[0], rows_per_segment):
-        segment = lines[start : start + rows_per_segment]
-        if zero_rows[start : start + rows_per_segment].all():
-            parts.append(_deflated_zeros(segment.nbytes))
-            continue
-        compressor = zlib.compressobj(PNG_DEFLATE_LEVEL, zlib.DEFLATED, -15, 9, zlib.Z_RLE)
-        parts.append(compressor.compress(segment.tobytes()) + compressor.flush(zlib.Z_FULL_FLUSH))
-    parts.append(b"\x03\x00")  # empty final fixed-Huffman block
-    parts.append(struct.pack(">I", zlib.adler32(lines.data)))
-    return b"".join(parts)
 
 
 PNG_SRGB_INTENT_PERCEPTUAL = 0
@@ -148,11 +178,21 @@ def _png_text_chunk(keyword: str, text: str) -> bytes:
     return _png_chunk(b"iTXt", key + b"\0\0\0\0\0" + text.encode("utf-8"))
 
 
-def encode_png(image: np.ndarray, *, srgb: bool = False, text: dict[str, str] | None = None) -> bytes:
+def encode_png(
+    image: np.ndarray,
+    *,
+    srgb: bool = False,
+    text: dict[str, str] | None = None,
+    origin_px: tuple[int, int] = (0, 0),
+    canvas_px: tuple[int, int] | None = None,
+) -> bytes:
     """PNG bytes of a uint8/uint16 image: (H, W) grey, (H, W, 3) RGB or (H, W, 4) RGBA.
 
     `srgb=True` marks the samples as sRGB (sRGB chunk, with the gAMA and cHRM a decoder without sRGB
     support falls back on); `text` adds one iTXt chunk per item (e.g. "Description", "Software").
+    With `canvas_px` (H, W), `image` is a window of a larger picture that is zero everywhere else, its top-left
+    pixel at `origin_px` (row, column): the PNG is of the whole canvas (a layer's region and its fringe), and the
+    same bytes as of the canvas made in full.
 
     Written here rather than by OpenCV: Up-filtered rows and zlib level 1 with run-length matching
     encode a 20 MP layer several times faster at a similar size, and zlib releases the GIL, so
@@ -164,7 +204,13 @@ def encode_png(image: np.ndarray, *, srgb: bool = False, text: dict[str, str] | 
     channels = 1 if image.ndim == 2 else image.shape[2] if image.ndim == 3 else 0
     if channels not in PNG_COLOUR_TYPES or (image.ndim == 3 and channels == 1) or 0 in image.shape:
         raise ValueError(f"PNG image must be (H, W), (H, W, 3) or (H, W, 4), got shape {image.shape}")
-    height, width = image.shape[:2]
+    height, width = canvas_px if canvas_px is not None else image.shape[:2]
+    top, left = origin_px
+    if top < 0 or left < 0 or top + image.shape[0] > height or left + image.shape[1] > width:
+        raise ValueError(
+            f"a PNG window of {image.shape[1]}x{image.shape[0]} px at row {top}, column {left} does not fit its "
+            f"canvas of {width}x{height} px"
+        )
     header = struct.pack(">IIBBBBB", width, height, 8 * image.dtype.itemsize, PNG_COLOUR_TYPES[channels], 0, 0, 0)
     chunks = [PNG_SIGNATURE, _png_chunk(b"IHDR", header)]
     if srgb:
@@ -175,7 +221,7 @@ def encode_png(image: np.ndarray, *, srgb: bool = False, text: dict[str, str] | 
         ]
     for keyword, value in (text or {}).items():
         chunks.append(_png_text_chunk(keyword, value))
-    chunks += [_png_chunk(b"IDAT", _deflate_zlib(*_png_scanlines(image))), _png_chunk(b"IEND", b"")]
+    chunks += [_png_chunk(b"IDAT", _png_idat(image, (top, left), (height, width))), _png_chunk(b"IEND", b"")]
     return b"".join(chunks)
 
 

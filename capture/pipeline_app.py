@@ -175,40 +175,68 @@ def layer_alpha(mask: np.ndarray, sigma_px: float = ALPHA_EDGE_PX) -> np.ndarray
     return np.maximum(mask_f, soft)
 
 
-def _layer_rgba8(
-    layer: Any, srgb8_of: Callable[[np.ndarray], np.ndarray], colour: CameraColour | None = None
-) -> np.ndarray:
-    """A layer (premultiplied linear camera RGB, alpha in [0, 1]) as 8-bit sRGB with anti-aliased 8-bit alpha.
+def _layer_window(
+    layer: Any,
+    srgb8_of: Callable[[np.ndarray], np.ndarray],
+    colour: CameraColour | None = None,
+    boxes_of: Callable[[np.ndarray], list[tuple[slice, slice] | None]] | None = None,
+) -> tuple[np.ndarray, tuple[int, int], tuple[int, int]]:
+    """A layer (premultiplied linear camera RGB, alpha in [0, 1]) as 8-bit sRGB with anti-aliased 8-bit alpha, as
+    the window that holds all of it: (RGBA window, its top-left (row, column) in the layer, the layer's (H, W)).
+    Every byte outside the window is 0; an empty layer's window is its top-left pixel.
 
-    Only the bounding box (plus a pixel) of the layer's non-zero pixels is converted; outside it every byte
-    is 0. A layer the pipeline built lazily from a (display image, labels) source
-    (`processing.result.MultiPlaneImage.rgba`: display x mask, alpha = mask) takes its colours from the
-    display image converted once for all layers (`srgb8_of`, cached by the caller, white balance and colour
-    matrix included), and its alpha from `layer_alpha` of its mask. RGB is stored unpremultiplied (PNG's
-    convention). `colour` converts an eager layer's camera RGB (identity when None).
+    The window is the bounding box of the layer's region grown by `ALPHA_MARGIN_PX` (lazy layers) or of its
+    non-zero pixels (eager ones): often a few per cent of the frame, where the whole RGBA of a 20 MP capture's
+    layer is 20 MB. A layer the pipeline built lazily from a (display image, labels) source
+    (`processing.result.MultiPlaneImage.rgba`: display x mask, alpha = mask) takes its colours from the display
+    image converted once for all layers (`srgb8_of`, cached by the caller, white balance and colour matrix
+    included), and its alpha from `layer_alpha` of its mask. RGB is stored unpremultiplied (PNG's convention).
+    `colour` converts an eager layer's camera RGB (identity when None). `boxes_of(labels)`: the bounding box of
+    every label of a lazy layer's label image (`processing.labels.label_boxes`), made once for all its layers by
+    the caller; without it each layer finds its own box in the whole label image.
     """
     source = layer.lazy_source
     if source is not None:
         display, labels = source
-        mask = np.asarray(labels) == layer.region_id
-        out = np.zeros(mask.shape + (4,), np.uint8)
-        box = _box_of(mask)
-        if box is not None:
-            box = _grown(box, mask.shape, ALPHA_MARGIN_PX)
-            inside = out[box]
-            alpha8 = _alpha8(layer_alpha(mask[box]))
-            np.copyto(inside[..., :3], srgb8_of(display)[box], where=(alpha8 > 0)[..., None])
-            inside[..., 3] = alpha8
-        return out
+        labels = np.asarray(labels)
+        if boxes_of is not None:
+            boxes = boxes_of(labels)
+            found = boxes[layer.region_id - 1] if 0 < layer.region_id <= len(boxes) else None
+        else:
+            found = _box_of(labels == layer.region_id)
+        if found is None:
+            return np.zeros((1, 1, 4), np.uint8), (0, 0), labels.shape
+        box = _grown(found, labels.shape, ALPHA_MARGIN_PX)
+        mask = labels[box] == layer.region_id
+        window = np.zeros(mask.shape + (4,), np.uint8)
+        alpha8 = _alpha8(layer_alpha(mask))
+        np.copyto(window[..., :3], srgb8_of(display)[box], where=(alpha8 > 0)[..., None])
+        window[..., 3] = alpha8
+        return window, (box[0].start, box[1].start), labels.shape
     rgba = np.asarray(layer.rgba)
-    out = np.zeros(rgba.shape[:2] + (4,), np.uint8)
-    box = _box_of((rgba != 0).any(axis=2))
-    if box is not None:
-        crop = rgba[box]
-        alpha = np.clip(np.nan_to_num(crop[..., 3:4]), 0.0, 1.0)
-        straight = np.where(alpha > 0, crop[..., :3] / np.maximum(alpha, 1e-6), 0.0)
-        out[box][..., :3] = (colour or CameraColour()).to_srgb8(straight)
-        out[box][..., 3] = _alpha8(crop[..., 3])
+    nonzero = _box_of((rgba != 0).any(axis=2))
+    if nonzero is None:
+        return np.zeros((1, 1, 4), np.uint8), (0, 0), rgba.shape[:2]
+    crop = rgba[nonzero]
+    window = np.zeros(crop.shape[:2] + (4,), np.uint8)
+    alpha = np.clip(np.nan_to_num(crop[..., 3:4]), 0.0, 1.0)
+    straight = np.where(alpha > 0, crop[..., :3] / np.maximum(alpha, 1e-6), 0.0)
+    window[..., :3] = (colour or CameraColour()).to_srgb8(straight)
+    window[..., 3] = _alpha8(crop[..., 3])
+    return window, (nonzero[0].start, nonzero[1].start), rgba.shape[:2]
+
+
+def _window_crop(window: np.ndarray, origin: tuple[int, int], box: tuple[slice, slice]) -> np.ndarray:
+    """The part `box` of the canvas that is zero but for `window` at `origin` (row, column)."""
+    rows, cols = box
+    out = np.zeros((rows.stop - rows.start, cols.stop - cols.start) + window.shape[2:], window.dtype)
+    top, left = origin
+    y0, y1 = max(rows.start, top), min(rows.stop, top + window.shape[0])
+    x0, x1 = max(cols.start, left), min(cols.stop, left + window.shape[1])
+    if y0 < y1 and x0 < x1:
+        out[y0 - rows.start : y1 - rows.start, x0 - cols.start : x1 - cols.start] = window[
+            y0 - top : y1 - top, x0 - left : x1 - left
+        ]
     return out
 
 
@@ -521,19 +549,32 @@ class OutputWriter:
             if layer.lazy_source is not None:
                 convert(layer.lazy_source[0])
 
+        label_boxes_by_id: dict[int, list[tuple[slice, slice] | None]] = {}
+        boxes_lock = threading.Lock()
+
+        def boxes_of(labels: np.ndarray) -> list[tuple[slice, slice] | None]:
+            """The bounding boxes of a label image's labels, found once for all the layers that share it."""
+            from mca.processing.labels import label_boxes
+
+            with boxes_lock:
+                if id(labels) not in label_boxes_by_id:
+                    label_boxes_by_id[id(labels)] = label_boxes(labels)
+                return label_boxes_by_id[id(labels)]
+
         def write_layer(index: int, layer: Any, box: tuple[slice, slice] | None) -> tuple[Path, bytes | None]:
-            rgba8 = _layer_rgba8(layer, srgb8_of, colour)
+            window, origin, shape = _layer_window(layer, srgb8_of, colour, boxes_of)
             text = _file_text(
                 f"layer {index:02d}: multi-plane image of region {layer.region_id}, sRGB, alpha = coverage "
                 "(anti-aliased), front to back",
                 source,
             )
-            png = outputs.encode_png(rgba8, srgb=True, text=text)
+            png = outputs.encode_png(window, srgb=True, text=text, origin_px=origin, canvas_px=shape)
             path = outputs.write_bytes_atomic(out_dir / "layers" / f"{index:02d}.png", png)
             if box is None:
                 return path, None
-            crop = rgba8[box]
-            return path, png if crop.shape == rgba8.shape else outputs.encode_png(crop)  # a full-frame box: same PNG
+            crop = _window_crop(window, origin, box)
+            # a full-frame box: the same PNG
+            return path, png if crop.shape[:2] == tuple(shape) else outputs.encode_png(crop)
 
         def write_scene_ply() -> Path:
             assert camera is not None

@@ -124,6 +124,91 @@ def test_tiff_png_json_round_trip(tmp_path):
     assert _leftovers(tmp_path) == []
 
 
+def _sparse_canvas(rng, shape, dtype, window_box, channels):
+    """A canvas of zeros with content (and two all-zero rows) inside `window_box` only."""
+    canvas = np.zeros(shape + ((channels,) if channels else ()), dtype)
+    rows, cols = window_box
+    high = 65536 if dtype == np.uint16 else 256
+    canvas[rows, cols] = rng.integers(0, high, canvas[rows, cols].shape)
+    canvas[rows.start] = 0  # the window's first row empty, and one inside it
+    canvas[(rows.start + rows.stop) // 2] = 0
+    return canvas
+
+
+@pytest.mark.parametrize(
+    "shape, dtype, channels, window_box",
+    [
+        ((1200, 500), np.uint8, 4, (slice(300, 1000), slice(120, 320))),  # three deflate segments, window in two
+        ((1200, 500), np.uint8, 4, (slice(0, 1200), slice(0, 500))),  # the window is the canvas
+        ((900, 300), np.uint16, 0, (slice(850, 900), slice(290, 300))),  # at the bottom right corner
+        ((700, 640), np.uint8, 3, (slice(0, 5), slice(0, 640))),  # full-width rows at the top
+    ],
+)
+def test_a_png_window_is_the_png_of_its_whole_canvas(shape, dtype, channels, window_box):
+    """A layer's PNG is encoded from its region's window: the same bytes as from the whole canvas, and libpng (through
+    OpenCV) decodes the canvas."""
+    canvas = _sparse_canvas(np.random.default_rng(7), shape, dtype, window_box, channels)
+    rows, cols = window_box
+    windowed = outputs.encode_png(canvas[rows, cols], origin_px=(rows.start, cols.start), canvas_px=shape)
+    assert windowed == outputs.encode_png(canvas)
+    decoded = cv2.imdecode(np.frombuffer(windowed, np.uint8), cv2.IMREAD_UNCHANGED)
+    if channels:
+        decoded = cv2.cvtColor(decoded, cv2.COLOR_BGRA2RGBA if channels == 4 else cv2.COLOR_BGR2RGB)
+    np.testing.assert_array_equal(decoded, canvas)
+
+
+def test_a_png_window_outside_its_canvas_is_refused():
+    with pytest.raises(ValueError, match="a PNG window of 4x3 px at row 8, column 0 does not fit its canvas of 4x10"):
+        outputs.encode_png(np.ones((3, 4), np.uint8), origin_px=(8, 0), canvas_px=(10, 4))
+
+
+@pytest.mark.parametrize("start", [1, 0x12345678, 0xFFF0FFF0])
+@pytest.mark.parametrize("count", [0, 1, 65521, 5 * 2**20 + 3])
+def test_adler32_of_zeros_is_what_zlib_computes_from_the_zeros(start, count):
+    import zlib
+
+    assert outputs._adler32_zeros(start, count) == zlib.adler32(bytes(count), start)
+
+
+class _LazyLayer:
+    """What `_layer_window` reads of a `processing.result.MultiPlaneImage` made from (display image, labels)."""
+
+    def __init__(self, display, labels, region_id):
+        self.lazy_source, self.region_id = (display, labels), region_id
+
+
+@pytest.mark.parametrize("with_boxes", [False, True])
+def test_a_layers_window_holds_all_of_the_layer(with_boxes):
+    """The window (the region's box grown by the fringe) placed on zeros is the whole layer computed over the whole
+    frame: colours where the anti-aliased alpha is above 0, that alpha; for a region in the middle, one touching the
+    frame's corner and one that is absent."""
+    from mca.capture.pipeline_app import _alpha8, _layer_window, _window_crop, layer_alpha
+    from mca.processing.labels import label_boxes
+
+    rng = np.random.default_rng(3)
+    labels = np.ones((90, 120), np.uint16)
+    labels[30:50, 40:85] = 2
+    labels[60:70, 50:60] = 2  # a second part of region 2
+    labels[:12, 100:] = 3  # at the top right corner
+    display = rng.random((90, 120, 3), dtype=np.float32)
+
+    def srgb8_of(linear):
+        return np.round(linear * 255).astype(np.uint8)
+
+    boxes_of = label_boxes if with_boxes else None
+    for region_id in (1, 2, 3, 4):
+        window, (top, left), shape = _layer_window(_LazyLayer(display, labels, region_id), srgb8_of, None, boxes_of)
+        placed = np.zeros(shape + (4,), np.uint8)
+        placed[top : top + window.shape[0], left : left + window.shape[1]] = window
+        alpha8 = _alpha8(layer_alpha(labels == region_id))
+        expected = np.zeros_like(placed)
+        expected[..., :3] = np.where((alpha8 > 0)[..., None], srgb8_of(display), 0)
+        expected[..., 3] = alpha8
+        np.testing.assert_array_equal(placed, expected, err_msg=f"region {region_id}")
+        box = (slice(25, 55), slice(35, 95))  # a texture's crop, partly outside the window
+        np.testing.assert_array_equal(_window_crop(window, (top, left), box), expected[box])
+
+
 def test_a_large_map_is_written_in_strips_that_libtiff_reads_back_exactly(tmp_path):
     """The depth map is compressed strip by strip on several threads; OpenCV's libtiff (not the writer's own
     library) reads every strip back to the same floats, NaN included."""
