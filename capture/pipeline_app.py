@@ -179,7 +179,7 @@ def _layer_window(
     layer: Any,
     srgb8_of: Callable[[np.ndarray], np.ndarray],
     colour: CameraColour | None = None,
-    boxes_of: Callable[[np.ndarray], list[tuple[slice, slice] | None]] | None = None,
+    boxes: list[tuple[slice, slice] | None] | None = None,
 ) -> tuple[np.ndarray, tuple[int, int], tuple[int, int]]:
     """A layer (premultiplied linear camera RGB, alpha in [0, 1]) as 8-bit sRGB with anti-aliased 8-bit alpha, as
     the window that holds all of it: (RGBA window, its top-left (row, column) in the layer, the layer's (H, W)).
@@ -191,16 +191,15 @@ def _layer_window(
     (`processing.result.MultiPlaneImage.rgba`: display x mask, alpha = mask) takes its colours from the display
     image converted once for all layers (`srgb8_of`, cached by the caller, white balance and colour matrix
     included), and its alpha from `layer_alpha` of its mask. RGB is stored unpremultiplied (PNG's convention).
-    `colour` converts an eager layer's camera RGB (identity when None). `boxes_of(labels)`: the bounding box of
-    every label of a lazy layer's label image (`processing.labels.label_boxes`), made once for all its layers by
-    the caller; without it each layer finds its own box in the whole label image.
+    `colour` converts an eager layer's camera RGB (identity when None). `boxes`: the bounding boxes of a lazy
+    layer's label image (`region_boxes`), when the caller has them; without them the layer finds its own box in
+    the whole label image.
     """
     source = layer.lazy_source
     if source is not None:
         display, labels = source
         labels = np.asarray(labels)
-        if boxes_of is not None:
-            boxes = boxes_of(labels)
+        if boxes is not None:
             found = boxes[layer.region_id - 1] if 0 < layer.region_id <= len(boxes) else None
         else:
             found = _box_of(labels == layer.region_id)
@@ -530,7 +529,7 @@ class OutputWriter:
         scale, colour = result.pixel_scale, loaded.colour
         with_scene = camera is not None and result.depth_mm is not None
         layers = ordered_layers(result)
-        boxes = region_boxes(result.labels) if with_scene else []
+        boxes = region_boxes(result.labels)  # the GLB's textures and the layers' windows (layers cut from these labels)
         textured: set[int] = set()  # the first layer of a region textures its quad in the GLB
         distance_mm_of = getattr(self.optics, "distance_mm", None)
         pool = self._pool
@@ -549,20 +548,10 @@ class OutputWriter:
             if layer.lazy_source is not None:
                 convert(layer.lazy_source[0])
 
-        label_boxes_by_id: dict[int, list[tuple[slice, slice] | None]] = {}
-        boxes_lock = threading.Lock()
-
-        def boxes_of(labels: np.ndarray) -> list[tuple[slice, slice] | None]:
-            """The bounding boxes of a label image's labels, found once for all the layers that share it."""
-            from mca.processing.labels import label_boxes
-
-            with boxes_lock:
-                if id(labels) not in label_boxes_by_id:
-                    label_boxes_by_id[id(labels)] = label_boxes(labels)
-                return label_boxes_by_id[id(labels)]
-
         def write_layer(index: int, layer: Any, box: tuple[slice, slice] | None) -> tuple[Path, bytes | None]:
-            window, origin, shape = _layer_window(layer, srgb8_of, colour, boxes_of)
+            lazy = layer.lazy_source
+            cut_from_labels = lazy is not None and lazy[1] is result.labels
+            window, origin, shape = _layer_window(layer, srgb8_of, colour, boxes if cut_from_labels else None)
             text = _file_text(
                 f"layer {index:02d}: multi-plane image of region {layer.region_id}, sRGB, alpha = coverage "
                 "(anti-aliased), front to back",

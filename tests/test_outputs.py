@@ -195,9 +195,9 @@ def test_a_layers_window_holds_all_of_the_layer(with_boxes):
     def srgb8_of(linear):
         return np.round(linear * 255).astype(np.uint8)
 
-    boxes_of = label_boxes if with_boxes else None
+    boxes = label_boxes(labels) if with_boxes else None
     for region_id in (1, 2, 3, 4):
-        window, (top, left), shape = _layer_window(_LazyLayer(display, labels, region_id), srgb8_of, None, boxes_of)
+        window, (top, left), shape = _layer_window(_LazyLayer(display, labels, region_id), srgb8_of, None, boxes)
         placed = np.zeros(shape + (4,), np.uint8)
         placed[top : top + window.shape[0], left : left + window.shape[1]] = window
         alpha8 = _alpha8(layer_alpha(labels == region_id))

@@ -156,6 +156,20 @@ def test_pngs_pass_pngcheck_with_srgb_and_text_chunks(capture) -> None:
         assert ("chunk:sRGB" in chunks) == (path.name != "regions.png"), path  # labels are numbers, not colours
 
 
+def test_every_png_names_the_photograph_it_came_from(capture) -> None:
+    """The region map, the all-in-focus image and every layer carry the input's path in their Source text chunk (an
+    edit of the layer writer at the twenty-eighth stop shadowed that path with the layer's own pixel source, and no
+    test saw it)."""
+    from pathlib import Path
+
+    images = [capture.out_dir / "all_in_focus.png", capture.out_dir / "regions.png"]
+    images += sorted((capture.out_dir / "layers").glob("*.png"))
+    assert len(images) > 2
+    for path in images:
+        source = outputs.read_png_text(path.read_bytes())["Source"]
+        assert Path(source).resolve() == capture.cr2.resolve(), (path.name, source[:80])
+
+
 def test_layer_alpha_is_anti_aliased(capture) -> None:
     layer = cv2.imread(str(capture.out_dir / "layers" / "00.png"), cv2.IMREAD_UNCHANGED)
     alpha = layer[..., 3]
