@@ -21,6 +21,7 @@ import os
 import re
 import signal
 import sqlite3
+import stat
 import threading
 import time
 import unicodedata
@@ -488,7 +489,9 @@ class TetherSession:
         wanted = obj.filename
         if self.filename_pattern is not None:
             wanted = self.filename_pattern.name_for(shot_id, obj.filename)
-        name = sanitize_filename(wanted, self.catalog.file_names() | set(os.listdir(self.out_dir)))
+        listed = self.catalog.file_names()
+        orphan = _unlisted_file(self.out_dir, sanitize_filename(wanted, listed), expected)
+        name = sanitize_filename(wanted, listed | set(os.listdir(self.out_dir)))
         final = _safe_target(self.out_dir, name)
         tmp = _safe_target(self.out_dir, f".{name}.part")
         renamed = False
@@ -504,7 +507,13 @@ class TetherSession:
                         f"{cam.name} sent {writer.size_bytes} bytes for {obj.filename!r}, ObjectInfo says {expected}"
                     )
                 held.enter_context(DeferredInterrupt())  # the file in place and its row saying so: not split
-                os.replace(tmp, final)
+                if orphan is not None and _sha256_file(orphan) == writer.sha.hexdigest():
+                    # a run killed (kill -9) after renaming this very file into place and before its row said so:
+                    # the file is this shot's, byte for byte; it takes its row, and no second copy is kept
+                    tmp.unlink()
+                    final, name = orphan, orphan.name
+                else:
+                    os.replace(tmp, final)
                 renamed = True
             finally:
                 if not renamed:
@@ -624,6 +633,18 @@ def _describe(exc: BaseException, out_dir: Path) -> str:
     if isinstance(exc, OSError) and exc.errno in (errno.EACCES, errno.EROFS, errno.EPERM):
         return f"cannot write into {out_dir}: {exc.strerror}"
     return str(exc)
+
+
+def _unlisted_file(out_dir: Path, name: str, size_bytes: int) -> Path | None:
+    """`out_dir/name` when it is a regular file of `size_bytes` (a shot's download that lost its catalog row: the
+    caller compares the bytes), else None. `name` is one the catalog does not list."""
+    try:
+        found = os.lstat(out_dir / name)  # not followed: a link is not a download
+    except OSError:
+        return None
+    if not stat.S_ISREG(found.st_mode) or found.st_size != size_bytes:
+        return None
+    return _safe_target(out_dir, name)
 
 
 def _sha256_file(path: Path) -> str:

@@ -161,3 +161,52 @@ def test_catalog_times_never_run_backwards_across_a_second_boundary() -> None:
         stamps.append(_now())
     assert any(stamp[17:19] != stamps[0][17:19] for stamp in stamps)  # the seconds field did change
     assert all(later >= earlier for earlier, later in itertools.pairwise(stamps))
+
+
+class _Killed(BaseException):
+    """A `kill -9` at one line of the session: nothing after it runs (no handler catches a BaseException)."""
+
+
+@pytest.mark.parametrize("changed_since", [False, True])
+def test_a_run_killed_between_renaming_a_shot_into_place_and_cataloguing_it_leaves_nothing_unlisted(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, changed_since: bool
+) -> None:
+    """The file was renamed into place, its row still said `captured`. The next run downloads the shot again,
+    finds the file already there with the same bytes, and gives it its row: one file, listed, no `_1` copy
+    (until the twenty-eighth stop it wrote `IMG_0001_1.CR2` and left the first unlisted for good; the main job's
+    fault test hit it once with a random SIGKILL). A file of that name whose bytes are not the shot's is never
+    taken for it: it stays as it is, unlisted, and the shot gets a name of its own."""
+    rig = make_sim_rig(default_frame_source)
+    first = TetherSession(open_camera("sim", rig=rig, timeout_s=0.3), tmp_path)
+    first.connect()
+
+    def killed(*args, **kwargs):
+        raise _Killed
+
+    monkeypatch.setattr(first.catalog, "mark_downloaded", killed)
+    with pytest.raises(_Killed):
+        first.capture(1)
+    (on_disk,) = tmp_path.glob("*.CR2")
+    assert [row.status for row in first.catalog.rows()] == ["captured"]
+    assert any("does not list" in problem for problem in first.catalog.disagreements())
+    first.close()  # the connection ends with the process (the simulated card outlives it, as a real one does)
+    stranger = bytes(b ^ 0xFF for b in on_disk.read_bytes())  # the same size, other bytes
+    if changed_since:
+        on_disk.write_bytes(stranger)
+
+    second = TetherSession(open_camera("sim", rig=rig, timeout_s=0.3), tmp_path)
+    second.connect()  # fetches what the catalog says is still on the card
+    try:
+        (row,) = second.catalog.rows()
+        assert row.status == "downloaded"
+        _check_card_against_disk(second, rig, tmp_path, 1)
+        if changed_since:
+            assert row.file_name != on_disk.name and on_disk.read_bytes() == stranger
+            assert [p for p in second.catalog.disagreements() if "does not list" in p] == [
+                f"{on_disk}: a photograph in the folder that the catalog does not list"
+            ]
+        else:
+            assert sorted(p.name for p in tmp_path.glob("*.CR2")) == [on_disk.name] == [row.file_name]
+            assert second.catalog.disagreements() == []
+    finally:
+        second.close()
