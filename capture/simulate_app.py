@@ -123,6 +123,7 @@ class RgbdOptions:
     vignetting: str = "none"
     seed: int = 0
     name: str | None = None
+    pitch: str = "frame"  # `simulated_shots.RENDER_PITCHES`: the whole sensor width, or the body's photosites
 
 
 @dataclass(frozen=True)
@@ -192,6 +193,7 @@ def simulate_rgbd(
             realism=realism,
             seed=options.seed,
             name=options.name,
+            pitch=options.pitch,
         )
         paths = write_rgbd_capture(capture, out_dir)
     except (ValueError, OSError) as exc:
@@ -206,7 +208,7 @@ def simulate_rgbd(
 class TreeOptions:
     """How a Middlebury-style tree is rendered (`mca simulate --from-rgbd-tree`)."""
 
-    dev_set: bool = False  # the development set of docs/evaluation.md: tuning, held-out and 20mp
+    dev_set: bool = False  # the development set of docs/evaluation.md: tuning, held-out, 20mp and native/
     fmt: str = "tiff"
     scale: float | None = None
     width_px: int | None = None  # None: 1368; 0: each scene's own size
@@ -214,6 +216,7 @@ class TreeOptions:
     seeds: tuple[int, ...] = (1, 2)
     scenes: tuple[str, ...] | None = None
     force: bool = False
+    pitch: str = "frame"  # `simulated_shots.RENDER_PITCHES`
 
 
 @dataclass
@@ -241,6 +244,7 @@ def simulate_rgbd_tree(
         DEV_SEEDS,
         DEV_TUNING_SCENES,
         DEV_WIDTH_PX,
+        check_render_pitch,
         find_rgbd_scenes,
         render_rgbd_tree,
     )
@@ -248,19 +252,27 @@ def simulate_rgbd_tree(
     if not tree.is_dir() or not find_rgbd_scenes(tree):
         raise SimulateError(f"{tree}: no scene folder with im.png and disp.png")
     _needs_lens(camera_profile)
-    jobs: list[tuple[str, tuple[str, ...] | None, tuple[int, ...], str, int | None, bool]]
+    if not options.dev_set:  # the development set picks its own formats and pitches
+        try:
+            check_render_pitch(camera_profile, options.pitch, options.fmt)
+        except ValueError as exc:
+            raise SimulateError(str(exc)) from None
+    jobs: list[tuple[str, tuple[str, ...] | None, tuple[int, ...], str, int | None, bool, str]]
     if options.dev_set:
         jobs = [
-            ("tuning", DEV_TUNING_SCENES, DEV_SEEDS, "tiff", DEV_WIDTH_PX, False),
-            ("held-out", DEV_HELD_OUT_SCENES, DEV_SEEDS, "tiff", DEV_WIDTH_PX, False),
-            ("20mp", (DEV_FULL_SCENE,), DEV_SEEDS[:1], "cr2", None, True),
+            ("tuning", DEV_TUNING_SCENES, DEV_SEEDS, "tiff", DEV_WIDTH_PX, False, "frame"),
+            ("held-out", DEV_HELD_OUT_SCENES, DEV_SEEDS, "tiff", DEV_WIDTH_PX, False, "frame"),
+            ("20mp", (DEV_FULL_SCENE,), DEV_SEEDS[:1], "cr2", None, True, "frame"),
+            # the same scenes and draws on the body's own photosites: 4x the disparities and discs in pixels
+            ("native/tuning", DEV_TUNING_SCENES, DEV_SEEDS, "tiff", DEV_WIDTH_PX, False, "native"),
+            ("native/held-out", DEV_HELD_OUT_SCENES, DEV_SEEDS, "tiff", DEV_WIDTH_PX, False, "native"),
         ]
     else:
         target = DEV_WIDTH_PX if options.width_px is None else (options.width_px or None)
-        jobs = [(".", options.scenes, options.seeds, options.fmt, target, options.full_size)]
+        jobs = [(".", options.scenes, options.seeds, options.fmt, target, options.full_size, options.pitch)]
     started = time.perf_counter()
     summary = TreeSummary()
-    for folder, names, job_seeds, job_fmt, job_width, job_full in jobs:
+    for folder, names, job_seeds, job_fmt, job_width, job_full, job_pitch in jobs:
         prefix = f"{folder}/" if folder != "." else ""
 
         def report(outcome: Any, prefix: str = prefix) -> None:
@@ -282,6 +294,7 @@ def simulate_rgbd_tree(
             full_size=job_full,
             force=options.force,
             on_outcome=report,
+            pitch=job_pitch,
         )
     summary.seconds = time.perf_counter() - started
     return summary

@@ -100,6 +100,15 @@ DEV_HELD_OUT_SCENES = ("Books", "Reindeer", "Teddy")
 DEV_SEEDS = (1, 2)
 DEV_WIDTH_PX = 1368  # dev renders are a quarter of the 70D's width (its pitch x 4), every scene resized to it
 DEV_FULL_SCENE = "Art"  # rendered once more at the full 20 MP through CR2 (speed of the pipeline)
+# How a render's pixels sit on the sensor. "frame": the photograph spans the whole sensor width (the pitch is the
+# sensor's width over the image's; the file names the camera, as `mca process` then reads it). "native": each pixel
+# of the photograph is one photosite of the body (its pixel_pitch_mm): a window of the sensor at full resolution, as a
+# renderer that takes a photograph as it is and the camera's photosites would make it. At the same distances its
+# disparities in pixels are width-of-sensor / width-of-image times larger (4x for a 1368-px render of the 70D), and
+# so are its defocus discs: the regime of renders made by other code (docs/evaluation.md, twenty-ninth stop). The
+# file then names no camera, so `mca process` takes the profile's pitch (`capture.api.optics_for`), and the render's
+# profile states it with the render's size.
+RENDER_PITCHES = ("frame", "native")
 
 
 @dataclass
@@ -239,6 +248,21 @@ def sensor_width_mm(profile: CameraProfile) -> float:
     return profile.pixel_pitch_mm * profile.width_px
 
 
+def check_render_pitch(profile: CameraProfile, pitch: str, fmt: str) -> None:
+    """Refuse a pitch `mca process` could not read back as rendered (`RENDER_PITCHES`)."""
+    if pitch not in RENDER_PITCHES:
+        raise ValueError(f"pitch must be one of {', '.join(RENDER_PITCHES)}, got {pitch!r}")
+    if pitch != "native":
+        return
+    if fmt != "tiff":
+        raise ValueError(
+            "--pitch native renders a window of the sensor at the body's pitch, which a CR2 cannot carry (a raw is "
+            "the body's whole frame or a downscaled one): use --format tiff"
+        )
+    if profile.pixel_pitch_mm is None:
+        raise ValueError(f"profile '{profile.name}' gives no camera.pixel_pitch_mm for --pitch native")
+
+
 def check_render_size(profile: CameraProfile, width_px: int, height_px: int, fmt: str) -> None:
     """Refuse sizes whose file `mca process` would read with another pitch or orientation than rendered."""
     from mca.capture.api import DOWNSCALED_RAW_RATIO
@@ -264,14 +288,18 @@ def check_render_size(profile: CameraProfile, width_px: int, height_px: int, fmt
         raise ValueError(f"a CR2 needs at least 22x22 pixels, got {width_px}x{height_px}")
 
 
-def profile_toml(profile: CameraProfile, sensor_distance_mm: float) -> str:
+def profile_toml(profile: CameraProfile, sensor_distance_mm: float, size_px: tuple[int, int] | None = None) -> str:
     """The profile as a file with its lens focused as rendered (d_ls); the camera's photosite pitch and size stay
-    the body's: `mca process` takes a render's pixel pitch from the file (its model and size)."""
+    the body's: `mca process` takes a render's pixel pitch from the file (its model and size). `size_px`
+    (width, height): the render's own size instead, for a window of the sensor at the body's pitch (a file that
+    names no camera, whose pixels are then the profile's `pixel_pitch_mm`, with no note that they may not be)."""
     ap = profile.aperture
     lines = [f'name = "{profile.name}-render"', "[camera]", f'model = "{profile.model}"']
     if profile.pixel_pitch_mm is not None:
         lines.append(f"pixel_pitch_mm = {profile.pixel_pitch_mm!r}")
-    if profile.width_px and profile.height_px:
+    if size_px is not None:
+        lines += [f"width_px = {size_px[0]}", f"height_px = {size_px[1]}"]
+    elif profile.width_px and profile.height_px:
         lines += [f"width_px = {profile.width_px}", f"height_px = {profile.height_px}"]
     if profile.lens is not None:
         lines += ["[lens]", f"focal_length_mm = {profile.lens.focal_length_mm!r}"]
@@ -301,10 +329,12 @@ def render_rgbd_capture(
     seed: int = 0,
     name: str | None = None,
     extra_truth: dict[str, Any] | None = None,
+    pitch: str = "frame",
 ) -> RgbdCapture:
     """Render `source` (already at the render size) as the profile's MCA camera focused at `focus_distance_mm`
     (default: the profile's), its valid disparity mapped onto `depth_range` (default: 150 mm before to 300 mm
-    behind the focus plane), as a 16-bit linear TIFF ("tiff") or a CR2 ("cr2")."""
+    behind the focus plane), as a 16-bit linear TIFF ("tiff") or a CR2 ("cr2"); `pitch` one of `RENDER_PITCHES`
+    (see there)."""
     import time
 
     from mca.devices.sim.render_rgbd import DepthRange, Realism, render_rgbd, rgbd_optics
@@ -315,11 +345,15 @@ def render_rgbd_capture(
         raise ValueError(f"profile '{profile.name}' has no lens: pick one with optics (e.g. paper-70d)")
     started = time.perf_counter()
     h, w = source.valid.shape
+    check_render_pitch(profile, pitch, fmt)
     check_render_size(profile, w, h, fmt)
     focus = float(focus_distance_mm) if focus_distance_mm is not None else profile.lens.focus_distance_mm
     depth_range = depth_range if depth_range is not None else DepthRange(focus - 150.0, focus + 300.0)
     realism = realism if realism is not None else Realism()
-    optics = rgbd_optics(profile, w, h, focus, sensor_width_mm(profile))
+    native = pitch == "native"
+    assert not native or profile.pixel_pitch_mm is not None  # check_render_pitch
+    width_mm = float(profile.pixel_pitch_mm) * w if native and profile.pixel_pitch_mm else sensor_width_mm(profile)
+    optics = rgbd_optics(profile, w, h, focus, width_mm)
     rendering = render_rgbd(
         source.image_srgb,
         source.disparity,
@@ -348,7 +382,7 @@ def render_rgbd_capture(
     else:
         from mca.devices.sim.render_rgbd import dn_to_linear16
 
-        data = linear_tiff_bytes(dn_to_linear16(rendering.image_dn, sensor), profile.model)
+        data = linear_tiff_bytes(dn_to_linear16(rendering.image_dn, sensor), None if native else profile.model)
         suffix = ".tiff"
     label = name or source.name
     truth = {
@@ -357,6 +391,7 @@ def render_rgbd_capture(
         "profile": profile.name,
         "image": label + suffix,
         "format": fmt,
+        "pitch": pitch,
         "source": {
             "image": str(source.image_path),
             "disparity": str(source.disparity_path),
@@ -377,23 +412,23 @@ def render_rgbd_capture(
         distance_mm=rendering.distance_mm,
         disparity_px=rendering.disparity_px,
         truth=truth,
-        profile_toml=profile_toml(profile, optics.sensor_distance_mm),
+        profile_toml=profile_toml(profile, optics.sensor_distance_mm, (w, h) if native else None),
         seconds=time.perf_counter() - started,
     )
 
 
-def linear_tiff_bytes(rgb16: np.ndarray, model: str) -> bytes:
-    """A 16-bit linear RGB TIFF naming the camera (Make/Model), so that `mca process` knows the sensor it spans."""
+def linear_tiff_bytes(rgb16: np.ndarray, model: str | None) -> bytes:
+    """A 16-bit linear RGB TIFF naming the camera (Make/Model), so that `mca process` knows the sensor it spans;
+    with `model` None it names none (a window of the sensor at the body's pitch: the profile's pitch applies)."""
     import tifffile
 
-    make = model.split()[0] if model.split() else "Canon"
+    tags = []
+    if model is not None:
+        make = model.split()[0] if model.split() else "Canon"
+        tags = [(271, "s", 0, make, True), (272, "s", 0, model, True)]
     buffer = io.BytesIO()
     tifffile.imwrite(
-        buffer,
-        np.ascontiguousarray(rgb16, dtype=np.uint16),
-        photometric="rgb",
-        metadata=None,
-        extratags=[(271, "s", 0, make, True), (272, "s", 0, model, True)],
+        buffer, np.ascontiguousarray(rgb16, dtype=np.uint16), photometric="rgb", metadata=None, extratags=tags
     )
     return buffer.getvalue()
 
@@ -450,13 +485,15 @@ def render_rgbd_tree(
     full_size: bool = False,
     force: bool = False,
     on_outcome: Any = None,
+    pitch: str = "frame",
 ) -> list[TreeOutcome]:
     """Render every scene of a Middlebury-style tree once per seed into `out_dir`, with realism drawn at random
     from the seed (focus, depth range, ISO, exposure, crosstalk, vignetting; `draw_scene_settings`).
 
     Size: `scale` times the scene's size when given, else resized to `width_px` wide (None: its own size);
-    `full_size` crops to the profile's aspect and renders at the profile's full size. Renders whose truth
-    and image exist are kept (cached) unless `force`. A scene that fails is reported and the rest go on.
+    `full_size` crops to the profile's aspect and renders at the profile's full size. `pitch` one of
+    `RENDER_PITCHES` ("native" renders are named `<Scene>-s<seed>-native`). Renders whose truth and image exist
+    are kept (cached) unless `force`. A scene that fails is reported and the rest go on.
     """
     import time
 
@@ -469,7 +506,7 @@ def render_rgbd_tree(
         folders = [f for f in folders if f.name.lower() in wanted]
     for folder in folders:
         for seed in seeds:
-            name = f"{folder.name}-s{seed}" + ("-20mp" if full_size else "")
+            name = f"{folder.name}-s{seed}" + ("-20mp" if full_size else "") + ("-native" if pitch == "native" else "")
             suffix = ".CR2" if fmt == "cr2" else ".tiff"
             out = Path(out_dir)
             if not force and (out / TRUTH_DIR / f"{name}.json").is_file() and (out / f"{name}{suffix}").is_file():
@@ -503,6 +540,7 @@ def render_rgbd_tree(
                         seed=int(rng.integers(2**31)),
                         name=name,
                         extra_truth={"draw": draw.as_dict(), "draw_seed": seed, "source_scale": factor},
+                        pitch=pitch,
                     )
                     write_rgbd_capture(capture, out)
                     outcome = TreeOutcome(

@@ -239,6 +239,90 @@ def test_written_captures_are_read_with_the_rendered_pitch_and_orientation(tmp_p
     assert (focused.aperture, focused.model) == (PROFILE.aperture, PROFILE.model)
 
 
+def test_a_native_pitch_render_is_a_window_of_the_sensor_read_back_with_the_bodys_pitch(tmp_path) -> None:
+    """--pitch native: each pixel is one photosite of the body. The written TIFF names no camera, so `mca process`
+    takes the profile's pitch; the red-blue shift measured in the file is the thin lens's at that pitch (4.1 um),
+    where the same scene on the whole sensor width ("frame") moves by the sensor's width over the image's less."""
+    from mca.capture.api import optics_for, pitch_note, read_input
+    from mca.capture.simulated_shots import RgbdSource, render_rgbd_capture, write_rgbd_capture
+    from mca.devices.profiles import load_profile_file
+
+    h, w = 160, 224
+    grey = _texture(h, w, 5, sigma=1.5)
+    image = np.repeat(grey[..., None], 3, axis=2)
+    stereo = np.full((h, w), 14.0, np.float32)  # one plane at the depth range's far end
+    stereo[:6, :6] = 15.0  # and a corner at its near end (the range needs two depths); not measured
+    source = RgbdSource("plane", image, stereo, np.ones((h, w), bool), Path("im.png"), Path("disp.png"), 1.0)
+    quiet = Realism(SensorModel(noise=False))
+    shifts = {}
+    for pitch in ("frame", "native"):
+        capture = render_rgbd_capture(
+            source,
+            PROFILE,
+            realism=quiet,
+            depth_range=DepthRange(900.0, 1150.0),
+            focus_distance_mm=1000.0,
+            seed=0,
+            name=f"plane-{pitch}",
+            pitch=pitch,
+        )
+        paths = write_rgbd_capture(capture, tmp_path / pitch)
+        truth = json.loads(paths["truth"].read_text())
+        assert truth["pitch"] == pitch
+        loaded = read_input(paths["image"])
+        profile = load_profile_file(paths["profile"])
+        optics = optics_for(profile, loaded)
+        if pitch == "native":
+            assert loaded.pixel_pitch_mm is None  # the file names no body
+            assert optics.pixel_pitch_mm == PROFILE.pixel_pitch_mm == truth["optics"]["pixel_pitch_mm"]
+            assert (profile.width_px, profile.height_px) == (w, h) and pitch_note(profile, loaded) is None
+        else:
+            assert loaded.pixel_pitch_mm == pytest.approx(22.5 / w, rel=1e-9)
+        planes = loaded.planes
+        measured = phase_shift_px(planes[24:-16, 24:-16, 0], planes[24:-16, 24:-16, 2])[0]
+        expected = 2.0 * _thin_lens_shift_px("red", 1150.0, 1000.0, optics.pixel_pitch_mm)[0]
+        assert measured == pytest.approx(expected, abs=0.03), pitch
+        assert np.median(capture.disparity_px[6:, 6:]) == pytest.approx(expected, abs=1e-3)  # as the truth says
+        shifts[pitch] = measured
+    assert shifts["native"] / shifts["frame"] == pytest.approx(22.5 / (PROFILE.pixel_pitch_mm * w), rel=0.01)
+
+
+def test_a_native_pitch_cr2_is_refused_with_what_to_do() -> None:
+    from mca.capture.simulated_shots import RgbdSource, render_rgbd_capture
+
+    source = RgbdSource(
+        "plane",
+        np.full((64, 96, 3), 0.5, np.float32),
+        np.ones((64, 96), np.float32),
+        np.ones((64, 96), bool),
+        Path("im.png"),
+        Path("disp.png"),
+        1.0,
+    )
+    with pytest.raises(ValueError, match="use --format tiff"):
+        render_rgbd_capture(source, PROFILE, fmt="cr2", pitch="native")
+    with pytest.raises(ValueError, match="pitch must be one of frame, native"):
+        render_rgbd_capture(source, PROFILE, pitch="sensor")
+
+
+@pytest.mark.skipif(not MIDDLEBURY.is_dir(), reason=f"the Middlebury scenes are not at {MIDDLEBURY}")
+def test_a_tree_at_native_pitch_keeps_each_seeds_draw_with_four_times_the_disparities(tmp_path) -> None:
+    from mca.capture.simulated_shots import render_rgbd_tree
+
+    frame = render_rgbd_tree(MIDDLEBURY, tmp_path, PROFILE, seeds=(1,), scenes=("Venus",), width_px=300)
+    native = render_rgbd_tree(
+        MIDDLEBURY, tmp_path, PROFILE, seeds=(1,), scenes=("Venus",), width_px=300, pitch="native"
+    )
+    assert [o.name for o in frame + native] == ["Venus-s1", "Venus-s1-native"]
+    truths = [json.loads((tmp_path / "truth" / f"{n}.json").read_text()) for n in ("Venus-s1", "Venus-s1-native")]
+    assert truths[0]["draw"] == truths[1]["draw"]  # the same scene, focus, depth range and sensor
+    ratio = truths[0]["optics"]["pixel_pitch_mm"] / truths[1]["optics"]["pixel_pitch_mm"]
+    assert ratio == pytest.approx(22.5 / (300 * PROFILE.pixel_pitch_mm), rel=1e-9)
+    low_f, high_f = truths[0]["disparity_range_px"]
+    low_n, high_n = truths[1]["disparity_range_px"]
+    assert (low_n, high_n) == pytest.approx((low_f * ratio, high_f * ratio), rel=1e-3)
+
+
 @pytest.mark.skipif(not MIDDLEBURY.is_dir(), reason=f"the Middlebury scenes are not at {MIDDLEBURY}")
 def test_a_middlebury_tree_renders_with_randomised_realism(tmp_path) -> None:
     from mca.capture.simulated_shots import render_rgbd_tree

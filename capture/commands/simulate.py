@@ -36,7 +36,15 @@ def register(app: typer.Typer) -> None:
             False,
             "--dev-set",
             help="With --from-rgbd-tree: the development set (docs/evaluation.md): OUT/tuning, OUT/held-out "
-            "(2 seeds each, 1368 px wide) and OUT/20mp (one scene at 20 MP through CR2).",
+            "(2 seeds each, 1368 px wide), OUT/20mp (one scene at 20 MP through CR2) and OUT/native/tuning, "
+            "OUT/native/held-out (the same renders at --pitch native).",
+        ),
+        pitch: str = typer.Option(
+            "frame",
+            "--pitch",
+            help="RGB-D: frame (the image spans the whole sensor; the file names the camera) or native (each "
+            "pixel one photosite of the body: a window of the sensor at full resolution, 4x the disparities of a "
+            "1368-px frame; TIFF only, naming no camera, so the profile's pixel_pitch_mm applies).",
         ),
         fmt: str = typer.Option("tiff", "--format", help="RGB-D renders: tiff (16-bit linear RGB) or cr2 (RGGB)."),
         scale: float = typer.Option(None, "--scale", help="RGB-D: resize the photograph by this factor first."),
@@ -91,6 +99,7 @@ def register(app: typer.Typer) -> None:
                     seeds=parse_integers(seeds, "--seeds"),
                     scenes=tuple(s for s in scenes.split(",") if s) if scenes else None,
                     force=force,
+                    pitch=pitch,
                 )
                 summary = simulate_rgbd_tree(camera_profile, Path(from_rgbd_tree), out_dir, tree_options, _tree_line)
                 _tree_done(summary, out_dir)
@@ -108,6 +117,7 @@ def register(app: typer.Typer) -> None:
                     vignetting=vignetting,
                     seed=seed,
                     name=name,
+                    pitch=pitch,
                 )
                 done = simulate_rgbd(camera_profile, Path(from_rgbd[0]), Path(from_rgbd[1]), out_dir, rgbd_options)
                 typer.echo(f"{done.paths['image'].name}: {done.summary}; {done.seconds:.1f} s")
