@@ -351,8 +351,11 @@ def render_rgbd_capture(
     depth_range = depth_range if depth_range is not None else DepthRange(focus - 150.0, focus + 300.0)
     realism = realism if realism is not None else Realism()
     native = pitch == "native"
-    assert not native or profile.pixel_pitch_mm is not None  # check_render_pitch
-    width_mm = float(profile.pixel_pitch_mm) * w if native and profile.pixel_pitch_mm else sensor_width_mm(profile)
+    if native:
+        assert profile.pixel_pitch_mm is not None  # check_render_pitch refused a profile without it
+        width_mm = profile.pixel_pitch_mm * w
+    else:
+        width_mm = sensor_width_mm(profile)
     optics = rgbd_optics(profile, w, h, focus, width_mm)
     rendering = render_rgbd(
         source.image_srgb,
