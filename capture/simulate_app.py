@@ -228,6 +228,21 @@ class TreeSummary:
     seconds: float = 0.0
 
 
+def _dev_set_overrides(options: TreeOptions) -> list[str]:
+    """The options given beside `--dev-set` that it would not use (each differs from its default)."""
+    defaults = TreeOptions()
+    named = {
+        "fmt": "--format",
+        "scale": "--scale",
+        "width_px": "--width",
+        "full_size": "--full-size",
+        "seeds": "--seeds",
+        "scenes": "--scenes",
+        "pitch": "--pitch",
+    }
+    return [flag for attr, flag in named.items() if getattr(options, attr) != getattr(defaults, attr)]
+
+
 def simulate_rgbd_tree(
     camera_profile: CameraProfile,
     tree: Path,
@@ -252,7 +267,14 @@ def simulate_rgbd_tree(
     if not tree.is_dir() or not find_rgbd_scenes(tree):
         raise SimulateError(f"{tree}: no scene folder with im.png and disp.png")
     _needs_lens(camera_profile)
-    if not options.dev_set:  # the development set picks its own formats and pitches
+    if options.dev_set:
+        ignored = _dev_set_overrides(options)
+        if ignored:
+            raise SimulateError(
+                f"--dev-set renders its own scenes, seeds, sizes, formats and pitches (docs/evaluation.md); "
+                f"drop {', '.join(ignored)}, or leave out --dev-set to render the tree your way"
+            )
+    else:  # the development set picks its own formats and pitches
         try:
             check_render_pitch(camera_profile, options.pitch, options.fmt)
         except ValueError as exc:

@@ -363,3 +363,20 @@ def test_the_mosaic_samples_each_colour_at_its_own_bayer_site() -> None:
     expected_x = disparity / 2.0 - (offsets[0][0] - offsets[2][0])
     expected_y = -(offsets[0][1] - offsets[2][1])
     assert measured == pytest.approx((expected_x, expected_y), abs=0.02)
+
+
+@pytest.mark.skipif(not MIDDLEBURY.is_dir(), reason=f"the Middlebury scenes are not at {MIDDLEBURY}")
+def test_the_dev_set_refuses_the_options_it_would_ignore_and_writes_nothing(tmp_path) -> None:
+    from typer.testing import CliRunner
+
+    from mca.capture.cli import app
+
+    out = tmp_path / "dev"
+    result = CliRunner().invoke(
+        app,
+        ["simulate", "--from-rgbd-tree", str(MIDDLEBURY), "--dev-set", "--pitch", "native", "--seeds", "3"]
+        + ["--out", str(out)],
+    )
+    assert result.exit_code == 2, result.output
+    assert "drop --seeds, --pitch" in result.output and "leave out --dev-set" in result.output
+    assert not any(p.is_file() for p in out.rglob("*"))  # refused before the first render
