@@ -267,20 +267,14 @@ def simulate_rgbd_tree(
     if not tree.is_dir() or not find_rgbd_scenes(tree):
         raise SimulateError(f"{tree}: no scene folder with im.png and disp.png")
     _needs_lens(camera_profile)
-    if options.dev_set:
+    jobs: list[tuple[str, tuple[str, ...] | None, tuple[int, ...], str, int | None, bool, str]]
+    if options.dev_set:  # its own scenes, seeds, sizes, formats and pitches
         ignored = _dev_set_overrides(options)
         if ignored:
             raise SimulateError(
                 f"--dev-set renders its own scenes, seeds, sizes, formats and pitches (docs/evaluation.md); "
                 f"drop {', '.join(ignored)}, or leave out --dev-set to render the tree your way"
             )
-    else:  # the development set picks its own formats and pitches
-        try:
-            check_render_pitch(camera_profile, options.pitch, options.fmt)
-        except ValueError as exc:
-            raise SimulateError(str(exc)) from None
-    jobs: list[tuple[str, tuple[str, ...] | None, tuple[int, ...], str, int | None, bool, str]]
-    if options.dev_set:
         jobs = [
             ("tuning", DEV_TUNING_SCENES, DEV_SEEDS, "tiff", DEV_WIDTH_PX, False, "frame"),
             ("held-out", DEV_HELD_OUT_SCENES, DEV_SEEDS, "tiff", DEV_WIDTH_PX, False, "frame"),
@@ -290,6 +284,10 @@ def simulate_rgbd_tree(
             ("native/held-out", DEV_HELD_OUT_SCENES, DEV_SEEDS, "tiff", DEV_WIDTH_PX, False, "native"),
         ]
     else:
+        try:
+            check_render_pitch(camera_profile, options.pitch, options.fmt)
+        except ValueError as exc:
+            raise SimulateError(str(exc)) from None
         target = DEV_WIDTH_PX if options.width_px is None else (options.width_px or None)
         jobs = [(".", options.scenes, options.seeds, options.fmt, target, options.full_size, options.pitch)]
     started = time.perf_counter()
@@ -311,7 +309,7 @@ def simulate_rgbd_tree(
             seeds=job_seeds,
             scenes=names,
             fmt=job_fmt,
-            scale=options.scale if not options.dev_set else None,
+            scale=options.scale,  # None with --dev-set (refused otherwise)
             width_px=job_width,
             full_size=job_full,
             force=options.force,
