@@ -11,6 +11,7 @@ import pytest
 import tifffile
 from image_shift import phase_shift_px
 from independent_render import Optics, expose, fill_farthest, profile_text, render, srgb_to_linear
+from tools import benchmark_module
 
 REPO = Path(__file__).resolve().parents[1]
 PROFILE = REPO / "devices" / "profiles" / "paper-70d.toml"
@@ -128,7 +129,6 @@ def test_twins_of_a_render_folder_score_as_the_renders_do(tmp_path):
     """`benchmarks/independent_twins.py` on a small `mca simulate --from-rgbd-tree` render of Books: the twin's
     red-blue disparity, from the render's true distances through the independent optics, is the simulator's
     truth (eqs. 2 and 11 agree), and `mca evaluate --rgbd` scores the twin as it scores the original."""
-    import importlib.util
     import json
 
     from typer.testing import CliRunner
@@ -141,10 +141,7 @@ def test_twins_of_a_render_folder_score_as_the_renders_do(tmp_path):
     arguments = ["--from-rgbd-tree", str(MIDDLEBURY), "--scenes", "Books", "--seeds", "3", "--width", "480"]
     result = CliRunner().invoke(app, ["simulate", *arguments, "--out", str(renders)])
     assert result.exit_code == 0, result.output
-    spec = importlib.util.spec_from_file_location("independent_twins", REPO / "benchmarks" / "independent_twins.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = benchmark_module("independent_twins")
     (truth_path,) = sorted(renders.rglob("truth/*.json"))
     module.twin(truth_path, renders, twins, 0.05)
     ours = tifffile.imread(truth_path.parent / "Books-s3.disparity.tiff")
@@ -160,16 +157,6 @@ def test_twins_of_a_render_folder_score_as_the_renders_do(tmp_path):
     assert max(bad.values()) <= 0.05, bad
 
 
-def _cost_floor_module():
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("cost_floor", REPO / "benchmarks" / "cost_floor.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_the_cost_floor_is_nil_on_grey_content_and_reads_a_wrong_truth_as_its_offset():
     """`benchmarks/cost_floor.py`: on a plane rendered independently from a texture whose channels are one line
     (grey), the colour-line cost's minimum in the 32-px cells lies a median under 0.005 px from the true disparity
@@ -179,7 +166,7 @@ def test_the_cost_floor_is_nil_on_grey_content_and_reads_a_wrong_truth_as_its_of
     (0.125 measured; docs/evaluation.md, fifteenth stop: 0.06-0.11 px on the Middlebury photographs)."""
     from mca.devices.profiles import load_profile_file
 
-    floor = _cost_floor_module()
+    floor = benchmark_module("cost_floor")
     aperture = load_profile_file(PROFILE).aperture
     optics = Optics.from_profile(PROFILE, 1200.0, SENSOR_WIDTH_MM / 1368)
     rng = np.random.default_rng(5)

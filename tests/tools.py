@@ -6,14 +6,25 @@ validator that silently went missing cannot turn a check into a skip.
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import shutil
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 GLTF_VALIDATOR_DIR = ROOT / ".venv" / "node"  # dev.py: npm install --prefix .venv/node gltf-validator
+
+
+def benchmark_module(name: str) -> ModuleType:
+    """`benchmarks/<name>.py` loaded as a module (the benchmarks are scripts, not a package)."""
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def require(tool: str, install: str) -> str:
