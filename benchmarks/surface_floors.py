@@ -4,8 +4,9 @@
 
 For each TIFF render under RENDERS (`mca simulate --from-rgbd[-tree]`, e.g. `--dev-set`'s `native/tuning/`) the
 default pipeline runs in-process as `mca process` runs it (`capture.api.run_depth`, the render's own profile
-from its truth/), kept open after its stages so that their intermediate maps can be scored. Printed per render,
-each the share of pixels more than 1 px of red-blue disparity off the truth (a missing value counts as bad):
+from its truth/), its run kept (`pipeline.finished_run`) so that the stages' intermediate maps can be scored.
+Printed per render, each the share of pixels more than 1 px of red-blue disparity off the truth (a missing value
+counts as bad):
 
 - `dense`: the dense search's per-pixel disparity (`processing.dense`), what the surfaces are fitted to;
 - `own-fit`: every superpixel's own robust plane through the dense map (`surfaces.fit_planes`);
@@ -84,20 +85,8 @@ def score_render(image_path: str, truth_dir: str, truth: dict[str, Any]) -> dict
     kept: dict[str, Any] = {}
 
     def pipeline(planes: np.ndarray, aperture: Any, optics: Any, **kwargs: Any) -> Any:
-        run = pl._Run(
-            np.ascontiguousarray(planes, np.float32),
-            aperture,
-            optics,
-            kwargs.get("pixel_scale", 1.0),
-            kwargs.get("disparity_range_px"),
-            pl.NullRecorder(),
-            kwargs.get("channel_offsets_px"),
-            kwargs.get("params", pl.PipelineParams()),
-        )
-        for _name, stage in pl._STAGES:
-            stage(run)
-        kept["run"] = run
-        return run.result()
+        kept["run"] = pl.finished_run(planes, aperture, optics, **kwargs)
+        return kept["run"].result()
 
     result = api.run_depth(loaded, profile, pipeline=pipeline)
     run = kept["run"]

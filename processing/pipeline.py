@@ -238,6 +238,31 @@ def run_pipeline(
     filter pair in input-image pixels, + = farther than focus; `optics` (with the input pixel pitch)
     turns them into depths, without it depths stay None. See the module docstring for the stages.
     """
+    return finished_run(
+        planes,
+        aperture,
+        optics,
+        pixel_scale=pixel_scale,
+        disparity_range_px=disparity_range_px,
+        recorder=recorder,
+        channel_offsets_px=channel_offsets_px,
+        params=params,
+    ).result()
+
+
+def finished_run(
+    planes: np.ndarray,
+    aperture: FilterAperture,
+    optics: MCAOptics | None,
+    *,
+    pixel_scale: float = 1.0,
+    disparity_range_px: tuple[float, float] | None = None,
+    recorder: Recorder | None = None,
+    channel_offsets_px: tuple[tuple[float, float], ...] | None = None,
+    params: PipelineParams = PipelineParams(),
+) -> _Run:
+    """`run_pipeline` keeping the run: every stage's intermediate results (the dense map, the surfaces, the
+    sketch) beside `.result()` (benchmarks/surface_floors.py scores them)."""
     if planes.ndim != 3 or planes.shape[2] != 3:
         raise ValueError(f"planes must be (H, W, 3), got shape {planes.shape}")
     run = _Run(
@@ -255,7 +280,7 @@ def run_pipeline(
         with run.timer.stage(name):
             stage(run)
     run.timer.timings["total"] = time.perf_counter() - started
-    return run.result()
+    return run
 
 
 def load_kernels(aperture: FilterAperture, optics: MCAOptics | None = None, quality: str = "full") -> float:
