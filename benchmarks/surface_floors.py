@@ -25,10 +25,7 @@ truth's. Prints figures only; docs/evaluation.md (thirty-first stop) gives them 
 
 from __future__ import annotations
 
-import argparse
 import sys
-from concurrent.futures import ProcessPoolExecutor
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -69,29 +66,13 @@ def best_candidates(surfaces: Any, truth_an: np.ndarray, to_input: float, rings:
 
 def score_render(image_path: str, truth_dir: str, truth: dict[str, Any]) -> dict[str, float] | str:
     """The stages' bad-1 (%) for one render, or a sentence saying why it was skipped."""
-    from mca.capture import api
-    from mca.capture.pipeline_app import read_input
-    from mca.capture.rgbd_evaluation import _read_float_tiff
-    from mca.devices.profiles import load_profile_file
-    from mca.processing import pipeline as pl
+    from mca.capture.rgbd_evaluation import run_kept
     from mca.processing.surfaces import fit_planes, plane_map
 
-    truth_root = Path(truth_dir)
-    truth_px = _read_float_tiff(truth_root / truth["files"]["disparity_px"])
-    profile = load_profile_file(truth_root / truth["files"]["profile"])
-    loaded = read_input(Path(image_path))
-    if max(loaded.planes.shape[:2]) > pl.PipelineParams().analysis_max_side_px or loaded.pixel_scale != 1:
-        return "larger than the analysis grid (or a Bayer input): its surfaces are not on the truth's grid"
-    kept: dict[str, Any] = {}
-
-    def pipeline(planes: np.ndarray, aperture: Any, optics: Any, **kwargs: Any) -> Any:
-        kept["run"] = pl.finished_run(planes, aperture, optics, **kwargs)
-        return kept["run"].result()
-
-    result = api.run_depth(loaded, profile, pipeline=pipeline)
-    run = kept["run"]
-    if run.factor != 1 or run.surfaces.labels.shape != truth_px.shape:
-        return f"analysed on a grid {run.factor}x smaller than the truth's"
+    kept = run_kept(image_path, truth_dir, truth)
+    if isinstance(kept, str):
+        return kept
+    run, result, truth_px = kept.run, kept.result, kept.truth_px
     to_input = float(run.to_input)
     surfaces = run.surfaces
     params = run.params.surfaces
@@ -112,32 +93,14 @@ def score_render(image_path: str, truth_dir: str, truth: dict[str, Any]) -> dict
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("renders", type=Path)
-    parser.add_argument("--names", default="", help="comma-separated parts of render names to keep")
-    parser.add_argument("--workers", type=int, default=2, help="renders scored at once (processes)")
-    args = parser.parse_args(argv)
-    from mca.capture.rgbd_evaluation import find_renders
+    from mca.capture.rgbd_evaluation import print_scores, score_renders
 
-    entries = find_renders(args.renders)
-    wanted = [n for n in args.names.split(",") if n]
-    entries = [e for e in entries if not wanted or any(n in e.name for n in wanted)]
-    jobs = [(str(e.image_path), str(e.truth_dir), e.truth) for e in entries]
-    with ProcessPoolExecutor(max(1, args.workers)) as pool:
-        outcomes = list(pool.map(score_render, *zip(*jobs))) if jobs else []
-    print(f"{'render':28s} " + " ".join(f"{s:>9s}" for s in STAGES) + "   (bad-1, %)")
-    scored = []
-    for entry, outcome in zip(entries, outcomes):
-        label = f"{entry.group}/{entry.name}"[-28:]
-        if isinstance(outcome, str):
-            print(f"{label:28s} skipped: {outcome}")
-            continue
-        scored.append(outcome)
-        print(f"{label:28s} " + " ".join(f"{outcome[s]:9.1f}" for s in STAGES), flush=True)
+    pairs = score_renders(score_render, argv, __doc__.split("\n")[0])
+    scored = print_scores(pairs, STAGES, 9, "   (bad-1, %)")
     if scored:
         for what, reduce in (("mean", np.mean), ("median", np.median)):
             print(f"{what:28s} " + " ".join(f"{reduce([o[s] for o in scored]):9.1f}" for s in STAGES))
-    return 0 if scored or not jobs else 1
+    return 0 if scored or not pairs else 1
 
 
 if __name__ == "__main__":

@@ -194,6 +194,85 @@ def run_ours(entry: RenderEntry, profile: Any, out_root: Path) -> tuple[Estimate
     return ours, ours_raw
 
 
+@dataclass
+class KeptRun:
+    """One render through the default pipeline in-process, its run kept for the stages' intermediate maps."""
+
+    run: Any  # `processing.pipeline.finished_run`'s run: dense, surfaces, small, aperture, to_input, ...
+    result: Any  # the `DepthResult` it made
+    truth_px: np.ndarray  # the truth's red-blue disparity in input px (NaN unknown)
+
+
+def run_kept(image_path: str | Path, truth_dir: str | Path, truth: dict[str, Any]) -> KeptRun | str:
+    """`mca process`'s pipeline on one render (`capture.api.run_depth`, the render's own profile from its truth/)
+    with its run kept (`pipeline.finished_run`), for the benchmarks that score the stages' maps; a sentence saying
+    why not when the render is larger than the analysis grid or a Bayer input (its maps are then not on the
+    truth's grid)."""
+    from mca.capture import api
+    from mca.capture.pipeline_app import read_input
+    from mca.devices.profiles import load_profile_file
+    from mca.processing import pipeline as pl
+
+    truth_root = Path(truth_dir)
+    truth_px = _read_float_tiff(truth_root / truth["files"]["disparity_px"])
+    profile = load_profile_file(truth_root / truth["files"]["profile"])
+    loaded = read_input(Path(image_path))
+    if max(loaded.planes.shape[:2]) > pl.PipelineParams().analysis_max_side_px or loaded.pixel_scale != 1:
+        return "larger than the analysis grid (or a Bayer input): its maps are not on the truth's grid"
+    kept: dict[str, Any] = {}
+
+    def pipeline(planes: np.ndarray, aperture: Any, optics: Any, **kwargs: Any) -> Any:
+        kept["run"] = pl.finished_run(planes, aperture, optics, **kwargs)
+        return kept["run"].result()
+
+    result = api.run_depth(loaded, profile, pipeline=pipeline)
+    run = kept["run"]
+    if run.factor != 1 or run.dense.disparity_px.shape != truth_px.shape:
+        return f"analysed on a grid {run.factor}x smaller than the truth's"
+    return KeptRun(run, result, truth_px)
+
+
+def score_renders(
+    score: Callable[[str, str, dict[str, Any]], Any], argv: list[str] | None, description: str
+) -> list[tuple[RenderEntry, Any]]:
+    """A benchmark's command line over renders: `RENDERS [--names A,B] [--workers N]` parsed from `argv`, and
+    `score(image_path, truth_dir, truth)` (a module-level function) run on each render found under RENDERS, N at
+    a time in processes; each render with what its score returned, in `find_renders`' order."""
+    import argparse
+    from concurrent.futures import ProcessPoolExecutor
+
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("renders", type=Path)
+    parser.add_argument("--names", default="", help="comma-separated parts of render names to keep")
+    parser.add_argument("--workers", type=int, default=2, help="renders scored at once (processes)")
+    args = parser.parse_args(argv)
+    entries = find_renders(args.renders)
+    wanted = [n for n in args.names.split(",") if n]
+    entries = [e for e in entries if not wanted or any(n in e.name for n in wanted)]
+    jobs = [(str(e.image_path), str(e.truth_dir), e.truth) for e in entries]
+    if not jobs:
+        return []
+    with ProcessPoolExecutor(max(1, args.workers)) as pool:
+        return list(zip(entries, pool.map(score, *zip(*jobs))))
+
+
+def print_scores(
+    pairs: list[tuple[RenderEntry, Any]], columns: tuple[str, ...], width: int, note: str = ""
+) -> list[dict[str, float]]:
+    """Print `score_renders`' outcomes, one row per render (`columns` of each figures dict, `width` characters
+    each; a sentence where a render was skipped) under a header ending in `note`; returns the figures scored."""
+    print(f"{'render':28s} " + " ".join(f"{c:>{width}s}" for c in columns) + note)
+    scored = []
+    for entry, outcome in pairs:
+        label = f"{entry.group}/{entry.name}"[-28:]
+        if isinstance(outcome, str):
+            print(f"{label:28s} skipped: {outcome}")
+            continue
+        scored.append(outcome)
+        print(f"{label:28s} " + " ".join(f"{outcome[c]:{width}.1f}" for c in columns), flush=True)
+    return scored
+
+
 def _mca_imports(module: str) -> set[str]:
     """`module` and every `mca` module it imports, directly or through others, at the top or inside a function
     (read from the source, not imported)."""
