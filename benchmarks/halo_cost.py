@@ -12,7 +12,8 @@ its truth/, the run kept by `pipeline.finished_run`). On the analysis grid it th
 
 Printed per render: the halo's share of the pixels; how many channels of each halo pixel are occluded at its true
 disparity (the truth's own map forward-warped into each channel's view, the nearest surface winning: a channel's
-sample there falls on a surface more than `OCCLUDED_PX` nearer); and, for halo and right pixels, how often the
+sample there falls on a surface more than `OCCLUDED_PX` nearer, in px of the analysis grid; the other thresholds
+are in input px); and, for halo and right pixels, how often the
 colour-line cost (`cost.cost_at`, the pipeline's window, sampler and noise model) is lower at the true map than at
 the dense map, at full size, at half size and for their sum. Halo pixels that are unoccluded and whose cost prefers
 the dense map are the cost's own fattening, which no occlusion model mends (docs/evaluation.md, thirty-second stop).
@@ -93,17 +94,17 @@ def score_render(image_path: str, truth_dir: str, truth: dict[str, Any]) -> dict
     kept = run_kept(image_path, truth_dir, truth)
     if isinstance(kept, str):
         return kept
-    run, truth_in = kept.run, kept.truth_px
-    truth = truth_in / np.float32(run.to_input)
-    dense = run.dense.disparity_px
-    shifts = channel_shifts(run.aperture)
-    edge = near_edge(truth, EDGE_JUMP_PX / run.to_input)
-    halo = halo_mask(dense, truth, edge)
+    run, truth_px = kept.run, kept.truth_px
+    # the masks in input px, where the thresholds are; the cost maps on the analysis grid, in its px
+    dense_px = run.dense.disparity_px * np.float32(run.to_input)
+    edge = near_edge(truth_px)
+    halo = halo_mask(dense_px, truth_px, edge)
     with np.errstate(invalid="ignore"):
-        right = edge & (np.abs(dense - truth) <= RIGHT_PX / run.to_input)
-    occluded = occluded_channels(truth, shifts, halo)
+        right = edge & (np.abs(dense_px - truth_px) <= RIGHT_PX)
+    truth_an = truth_px / np.float32(run.to_input)
+    occluded = occluded_channels(truth_an, channel_shifts(run.aperture), halo)
     params = run.params.dense
-    maps = np.stack([np.nan_to_num(truth), dense]).astype(np.float32)
+    maps = np.stack([np.nan_to_num(truth_an), run.dense.disparity_px]).astype(np.float32)
     inputs = cost_input(run.small, params.noise_model)  # the run lets its own go after the refinement
     full = cost_at(inputs.stacked, run.aperture, maps, params.window_px, params.noise_floor, noise=inputs.noise)
     small = cv2.pyrDown(run.small)
@@ -113,7 +114,7 @@ def score_render(image_path: str, truth_dir: str, truth: dict[str, Any]) -> dict
     half = cost_at(
         small_inputs.stacked, run.aperture, small_maps, params.window_px, params.noise_floor, noise=small_inputs.noise
     )
-    shape = (truth.shape[1], truth.shape[0])
+    shape = (truth_an.shape[1], truth_an.shape[0])
     half = np.stack([cv2.resize(v, shape, interpolation=cv2.INTER_LINEAR) for v in half])
     figures = {"halo": 100.0 * float(halo.mean())}
     count = max(len(occluded), 1)
