@@ -298,6 +298,31 @@ def _add_noise_deficit(ring_row, variance, y, sx, sy, d_row, per_pixel, deficit,
             ring_row[x] += table[int((dx - fx) * steps + 0.5), int((dy - fy) * steps + 0.5)] * variance[yi, xi]
 
 
+@nb.njit(cache=True, fastmath=FASTMATH, inline="always")
+def _products(samples: np.ndarray, products: np.ndarray) -> None:
+    """products (6, W) = rr, gg, bb, rg, rb, gb of the sampled row `samples` (B, 3, W), summed over the bands in
+    float32: the first band's assigned, each next one's added, one loop each (the compiler vectorises both)."""
+    for b in range(samples.shape[0]):
+        rr, gg, bb = samples[b, 0], samples[b, 1], samples[b, 2]
+        p0, p1, p2, p3, p4, p5 = products[0], products[1], products[2], products[3], products[4], products[5]
+        if b == 0:
+            for x in range(rr.shape[0]):
+                p0[x] = rr[x] * rr[x]
+                p1[x] = gg[x] * gg[x]
+                p2[x] = bb[x] * bb[x]
+                p3[x] = rr[x] * gg[x]
+                p4[x] = rr[x] * bb[x]
+                p5[x] = gg[x] * bb[x]
+        else:
+            for x in range(rr.shape[0]):
+                p0[x] += rr[x] * rr[x]
+                p1[x] += gg[x] * gg[x]
+                p2[x] += bb[x] * bb[x]
+                p3[x] += rr[x] * gg[x]
+                p4[x] += rr[x] * bb[x]
+                p5[x] += gg[x] * bb[x]
+
+
 @nb.njit(cache=True, fastmath=FASTMATH, error_model="numpy")  # numpy's: no zero-division check stops vectorising
 def _cost_map(bands, shifts, d, disparity, radius, eps, out, bspline, variance, gain, rho, signal_rho):
     """Colour-line cost of every pixel (window (2 radius + 1)^2, clamped at the borders) with the channels
@@ -351,16 +376,7 @@ def _cost_map(bands, shifts, d, disparity, radius, eps, out, bspline, variance, 
                             bands[b, c], y, d * shifts[c, 0], d * shifts[c, 1], samples[b, c], tmp, bspline
                         )
             products = ring[slot]
-            for b in range(nbands):
-                rr, gg, bb = samples[b, 0], samples[b, 1], samples[b, 2]
-                first = b == 0
-                for x in range(w):
-                    products[0, x] = (0.0 if first else products[0, x]) + rr[x] * rr[x]
-                    products[1, x] = (0.0 if first else products[1, x]) + gg[x] * gg[x]
-                    products[2, x] = (0.0 if first else products[2, x]) + bb[x] * bb[x]
-                    products[3, x] = (0.0 if first else products[3, x]) + rr[x] * gg[x]
-                    products[4, x] = (0.0 if first else products[4, x]) + rr[x] * bb[x]
-                    products[5, x] = (0.0 if first else products[5, x]) + gg[x] * bb[x]
+            _products(samples, products)
             if noisy:
                 for c in range(3):
                     row = disparity[y] if per_pixel else tmp  # tmp: a row of the right type, unused

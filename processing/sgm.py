@@ -21,20 +21,42 @@ from mca.processing.jit import FASTMATH
 
 
 @nb.njit(cache=True, fastmath=FASTMATH, inline="always")
+def _smallest(a: np.ndarray) -> float:
+    """The smallest value of `a`, in eight independent chains of comparisons: one chain waits on each comparison
+    before the next (the compiler may not split a floating-point minimum itself), eight keep the core busy."""
+    n = a.shape[0]
+    m0 = m1 = m2 = m3 = m4 = m5 = m6 = m7 = a[0]
+    i = 0
+    while i + 8 <= n:
+        m0, m1, m2, m3 = min(m0, a[i]), min(m1, a[i + 1]), min(m2, a[i + 2]), min(m3, a[i + 3])
+        m4, m5, m6, m7 = min(m4, a[i + 4]), min(m5, a[i + 5]), min(m6, a[i + 6]), min(m7, a[i + 7])
+        i += 8
+    while i < n:
+        m0 = min(m0, a[i])
+        i += 1
+    return min(min(min(m0, m1), min(m2, m3)), min(min(m4, m5), min(m6, m7)))
+
+
+@nb.njit(cache=True, fastmath=FASTMATH, inline="always")
 def _step(c: np.ndarray, prev: np.ndarray, prev_min: float, p1: float, p2: float, out: np.ndarray) -> float:
+    """One step of a path: `out` = L_r(p, .) from the costs `c` at p and `prev` = L_r(p - r, .) (float32
+    throughout: a uint16 cost is read as float32, which holds it exactly); returns min_d out.
+
+    The candidates inside the range run over slices indexed from 0, so that the compiler sees no negative index
+    and vectorises the loop (it did not over prev[d - 1])."""
     count = c.shape[0]
     base = prev_min + p2
     if count == 1:
-        out[0] = c[0] + min(prev[0], base) - prev_min
+        out[0] = np.float32(c[0]) + min(prev[0], base) - prev_min
         return out[0]
-    out[0] = c[0] + min(min(prev[0], prev[1] + p1), base) - prev_min
-    for d in range(1, count - 1):
-        out[d] = c[d] + min(min(prev[d], prev[d - 1] + p1), min(prev[d + 1] + p1, base)) - prev_min
-    out[count - 1] = c[count - 1] + min(min(prev[count - 1], prev[count - 2] + p1), base) - prev_min
-    smallest = out[0]
-    for d in range(1, count):
-        smallest = min(smallest, out[d])
-    return smallest
+    out[0] = np.float32(c[0]) + min(min(prev[0], prev[1] + p1), base) - prev_min
+    n = count - 2
+    below, at, above = prev[0:n], prev[1 : n + 1], prev[2 : n + 2]
+    costs, inner = c[1 : n + 1], out[1 : n + 1]
+    for i in range(n):
+        inner[i] = np.float32(costs[i]) + min(min(at[i], below[i] + p1), min(above[i] + p1, base)) - prev_min
+    out[count - 1] = np.float32(c[count - 1]) + min(min(prev[count - 1], prev[count - 2] + p1), base) - prev_min
+    return _smallest(out)
 
 
 @nb.njit(cache=True, fastmath=FASTMATH, inline="always")
