@@ -51,6 +51,21 @@ def test_eight_paths_equal_the_written_out_recurrence():
         assert np.allclose(got, reference(cost, guide, p1, p2, alpha), atol=1e-4)
 
 
+def test_every_candidate_count_equals_the_recurrence_and_integer_costs_come_out_exact():
+    """The step runs its inner candidates over slices and takes its minimum in eight chains with a tail: counts
+    of 1 to 19 cross every split. Integer costs and penalties (the dense search's uint16 volume) are exact in
+    float32, so there the sums equal the float64 recurrence exactly."""
+    rng = np.random.default_rng(11)
+    guide = rng.random((4, 5)).astype(np.float32)
+    for count in range(1, 20):
+        cost = rng.random((4, 5, count)).astype(np.float32)
+        got = aggregate(cost, guide, 0.1, 0.8)
+        assert np.allclose(got, reference(cost, guide, 0.1, 0.8, 0.0), atol=1e-4), count
+        levels = np.floor(rng.random((4, 5, count)) * 65535.0).astype(np.uint16)
+        exact = aggregate(levels, guide, 13107.0, 196605.0)
+        assert np.array_equal(exact, reference(levels.astype(np.float64), guide, 13107.0, 196605.0, 0.0)), count
+
+
 def test_a_uint16_volume_is_read_as_it_is_with_the_penalties_scaled_alike():
     """The dense search hands the aggregation its costs times 65535 as uint16 (`dense.COST_LEVELS`), penalties
     scaled alike: the recurrence over the integer costs, in floating point (levels near 65535 plus a penalty
