@@ -5,7 +5,7 @@ Along each path r the aggregated cost is
 and the paths are summed. P1 charges a one-step change of disparity (slanted and curved surfaces), P2 any
 larger jump; P2 shrinks where the guide image changes (an object boundary), P2(p) = max(1.5 P1,
 P2 / (1 + alpha max(max_c |I_c(p) - I_c(p-r)| - floor, 0))) over the guide's channels, floor the steps noise
-makes. Compiled with numba: the volume is (H, W, D) with D contiguous, each
+makes. On unevenly spaced candidates a change between neighbours more than one step apart is a jump (`gaps`). Compiled with numba: the volume is (H, W, D) with D contiguous, each
 path is a sweep over columns (horizontal paths, parallel over rows) or over rows: the three downward paths
 (vertical and diagonal) in one sweep and the three upward ones in another, each row of a sweep shared out
 among the threads by columns. Every path adds into one output volume: no second volume of the cost's size is
@@ -38,9 +38,10 @@ def _smallest(a: np.ndarray) -> float:
 
 
 @nb.njit(cache=True, fastmath=FASTMATH, inline="always")
-def _step(c: np.ndarray, prev: np.ndarray, prev_min: float, p1: float, p2: float, out: np.ndarray) -> float:
+def _step(c: np.ndarray, prev: np.ndarray, prev_min: float, gaps: np.ndarray, p2: float, out: np.ndarray) -> float:
     """One step of a path: `out` = L_r(p, .) from the costs `c` at p and `prev` = L_r(p - r, .) (float32
-    throughout: a uint16 cost is read as float32, which holds it exactly); returns min_d out.
+    throughout: a uint16 cost is read as float32, which holds it exactly); returns min_d out. `gaps[d]` is the
+    penalty of a change between candidates d and d + 1 (P1, or more where they lie more than a step apart).
 
     The candidates inside the range run over slices indexed from 0, so that the compiler sees no negative index
     and vectorises the loop (it did not over prev[d - 1])."""
@@ -49,13 +50,15 @@ def _step(c: np.ndarray, prev: np.ndarray, prev_min: float, p1: float, p2: float
     if count == 1:
         out[0] = np.float32(c[0]) + min(prev[0], base) - prev_min
         return out[0]
-    out[0] = np.float32(c[0]) + min(min(prev[0], prev[1] + p1), base) - prev_min
+    out[0] = np.float32(c[0]) + min(min(prev[0], prev[1] + gaps[0]), base) - prev_min
     n = count - 2
     below, at, above = prev[0:n], prev[1 : n + 1], prev[2 : n + 2]
+    up, down = gaps[0:n], gaps[1 : n + 1]
     costs, inner = c[1 : n + 1], out[1 : n + 1]
     for i in range(n):
-        inner[i] = np.float32(costs[i]) + min(min(at[i], below[i] + p1), min(above[i] + p1, base)) - prev_min
-    out[count - 1] = np.float32(c[count - 1]) + min(min(prev[count - 1], prev[count - 2] + p1), base) - prev_min
+        inner[i] = np.float32(costs[i]) + min(min(at[i], below[i] + up[i]), min(above[i] + down[i], base)) - prev_min
+    last = count - 1
+    out[last] = np.float32(c[last]) + min(min(prev[last], prev[last - 1] + gaps[last - 1]), base) - prev_min
     return _smallest(out)
 
 
@@ -70,7 +73,7 @@ def _penalty(p1: float, p2: float, alpha: float, floor: float, g0: np.ndarray, g
 
 
 @nb.njit(cache=True, fastmath=FASTMATH, inline="always")
-def _vertical_row(cost, guide, p1, p2, alpha, floor, out, y, yp, x0, x1, prev, prev_min, cur, cur_min):
+def _vertical_row(cost, guide, p1, gaps, p2, alpha, floor, out, y, yp, x0, x1, prev, prev_min, cur, cur_min):
     """Row y of the three paths with predecessors in row yp (path k: (yp, x - dx_k), dx = 0, +1, -1) for the
     columns x0..x1 - 1; their sum is added into `out`."""
     w, count = cost.shape[1], cost.shape[2]
@@ -88,7 +91,7 @@ def _vertical_row(cost, guide, p1, p2, alpha, floor, out, y, yp, x0, x1, prev, p
                 cur_min[k, x] = m
             else:
                 pen = _penalty(p1, p2, alpha, floor, guide[y, x], guide[yp, xp])
-                cur_min[k, x] = _step(c, prev[k, xp], prev_min[k, xp], p1, pen, row)
+                cur_min[k, x] = _step(c, prev[k, xp], prev_min[k, xp], gaps, pen, row)
     for x in range(x0, x1):
         o = out[y, x]
         for d in range(count):
@@ -96,7 +99,7 @@ def _vertical_row(cost, guide, p1, p2, alpha, floor, out, y, yp, x0, x1, prev, p
 
 
 @nb.njit(cache=True, parallel=True, fastmath=FASTMATH)
-def _vertical_sweep(cost, guide, p1, p2, alpha, floor, out, dy, chunks):
+def _vertical_sweep(cost, guide, p1, gaps, p2, alpha, floor, out, dy, chunks):
     """The three paths with a vertical component dy (+1: top to bottom) in one sweep over the rows, their sum
     added into `out`. Each row is shared out among the threads in `chunks` column blocks; a row starts when
     the one before it is done (its predecessors are there)."""
@@ -122,6 +125,7 @@ def _vertical_sweep(cost, guide, p1, p2, alpha, floor, out, dy, chunks):
                 cost,
                 guide,
                 p1,
+                gaps,
                 p2,
                 alpha,
                 floor,
@@ -138,7 +142,7 @@ def _vertical_sweep(cost, guide, p1, p2, alpha, floor, out, dy, chunks):
 
 
 @nb.njit(cache=True, parallel=True, fastmath=FASTMATH)
-def _columns_pass(cost, guide, p1, p2, alpha, floor, out, dx, assign):
+def _columns_pass(cost, guide, p1, gaps, p2, alpha, floor, out, dx, assign):
     """Horizontal paths: every row on its own, x in order (dx = +1: left to right); `assign`: the path's values
     replace those in `out`, else they are added."""
     h, w, count = cost.shape
@@ -154,7 +158,7 @@ def _columns_pass(cost, guide, p1, p2, alpha, floor, out, dx, assign):
         for i in range(1, w):
             x = x0 + dx * i
             pen = _penalty(p1, p2, alpha, floor, guide[y, x], guide[y, x - dx])
-            m = _step(cost[y, x], prev, m, p1, pen, row)  # type: ignore[assignment,arg-type]  # numba unifies float32 and float
+            m = _step(cost[y, x], prev, m, gaps, pen, row)  # type: ignore[assignment,arg-type]  # numba unifies float32 and float
             o = out[y, x]
             for d in range(count):
                 o[d] = row[d] + (0.0 if assign else o[d])
@@ -162,7 +166,13 @@ def _columns_pass(cost, guide, p1, p2, alpha, floor, out, dx, assign):
 
 
 def aggregate(
-    cost_hwd: np.ndarray, guide: np.ndarray, p1: float, p2: float, alpha: float = 0.0, step_floor: float = 0.0
+    cost_hwd: np.ndarray,
+    guide: np.ndarray,
+    p1: float,
+    p2: float,
+    alpha: float = 0.0,
+    step_floor: float = 0.0,
+    gaps: np.ndarray | None = None,
 ) -> np.ndarray:
     """Sum over the eight paths of the semi-global aggregation of `cost_hwd` (H, W, D), float32 (H, W, D).
 
@@ -171,7 +181,9 @@ def aggregate(
 
     `guide` (H, W) or (H, W, C) float32 image whose steps lower P2 (object boundaries; of a colour guide, the
     largest channel's step: two colours of one brightness still meet at an edge); `alpha` scales that effect
-    (0: constant P2); steps up to `step_floor` (what noise makes) do not count."""
+    (0: constant P2); steps up to `step_floor` (what noise makes) do not count. `gaps` (D - 1,): the penalty of a
+    change between candidates d and d + 1, P1 where not given (unevenly spaced candidates charge more where two
+    lie farther apart than one step of the search: `dense.search_candidates`)."""
     dtype = np.uint16 if cost_hwd.dtype == np.uint16 else np.float32
     cost = np.ascontiguousarray(cost_hwd, dtype=dtype)
     guide = np.ascontiguousarray(guide, dtype=np.float32)
@@ -179,9 +191,17 @@ def aggregate(
         guide = guide[..., None]
     out = np.empty(cost.shape, np.float32)  # every value written by the first pass
     a, q1, q2, f = np.float32(alpha), np.float32(p1), np.float32(p2), np.float32(step_floor)
-    _columns_pass(cost, guide, q1, q2, a, f, out, 1, True)
-    _columns_pass(cost, guide, q1, q2, a, f, out, -1, False)
+    count = cost.shape[2]
+    if gaps is None:
+        g = np.full(max(count - 1, 1), q1, np.float32)
+    else:
+        g = np.ascontiguousarray(gaps, np.float32)
+        if g.shape != (max(count - 1, 0),):
+            raise ValueError(f"gaps: {g.shape} penalties for {count} candidates; one per pair of neighbours")
+        g = g if count > 1 else np.zeros(1, np.float32)
+    _columns_pass(cost, guide, q1, g, q2, a, f, out, 1, True)
+    _columns_pass(cost, guide, q1, g, q2, a, f, out, -1, False)
     chunks = max(1, nb.get_num_threads())
-    _vertical_sweep(cost, guide, q1, q2, a, f, out, 1, chunks)
-    _vertical_sweep(cost, guide, q1, q2, a, f, out, -1, chunks)
+    _vertical_sweep(cost, guide, q1, g, q2, a, f, out, 1, chunks)
+    _vertical_sweep(cost, guide, q1, g, q2, a, f, out, -1, chunks)
     return out

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from mca.processing.sgm import aggregate
 
@@ -10,11 +11,18 @@ DIRECTIONS = [(0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (1, -1), (-1, 1), (-1, -
 
 
 def reference(
-    cost: np.ndarray, guide: np.ndarray, p1: float, p2: float, alpha: float, floor: float = 0.0
+    cost: np.ndarray,
+    guide: np.ndarray,
+    p1: float,
+    p2: float,
+    alpha: float,
+    floor: float = 0.0,
+    gaps: np.ndarray | None = None,
 ) -> np.ndarray:
     """Hirschmueller's recurrence along each of the eight directions (dy, dx), summed; a colour guide's step is
-    its largest channel's, less `floor`."""
+    its largest channel's, less `floor`; `gaps[d]` the penalty between candidates d and d + 1 (else P1)."""
     h, w, count = cost.shape
+    gaps = np.full(max(count - 1, 0), p1) if gaps is None else gaps
     guide = guide.reshape(h, w, -1)
     total = np.zeros_like(cost, dtype=np.float64)
     for dy, dx in DIRECTIONS:
@@ -34,9 +42,9 @@ def reference(
                 for d in range(count):
                     options = [prev[d], best + pen2]
                     if d > 0:
-                        options.append(prev[d - 1] + p1)
+                        options.append(prev[d - 1] + gaps[d - 1])
                     if d < count - 1:
-                        options.append(prev[d + 1] + p1)
+                        options.append(prev[d + 1] + gaps[d])
                     path[y, x, d] = cost[y, x, d] + min(options) - best
         total += path
     return total
@@ -64,6 +72,28 @@ def test_every_candidate_count_equals_the_recurrence_and_integer_costs_come_out_
         levels = np.floor(rng.random((4, 5, count)) * 65535.0).astype(np.uint16)
         exact = aggregate(levels, guide, 13107.0, 196605.0)
         assert np.array_equal(exact, reference(levels.astype(np.float64), guide, 13107.0, 196605.0, 0.0)), count
+
+
+def test_penalties_per_pair_of_neighbours_equal_the_recurrence_and_p1_everywhere_is_the_default():
+    """Unevenly spaced candidates (`dense.search_candidates`) charge a change between neighbours more than a step
+    apart as a jump: P2 there, P1 between the fine ones. Every count from 1 to 12, integer costs, exact."""
+    rng = np.random.default_rng(17)
+    guide = rng.random((5, 6, 3)).astype(np.float32)
+    p1, p2 = 13107.0, 196605.0
+    for count in range(1, 13):
+        levels = np.floor(rng.random((5, 6, count)) * 65535.0).astype(np.uint16)
+        gaps = np.where(rng.random(max(count - 1, 0)) < 0.4, p2, p1)
+        got = aggregate(levels, guide, p1, p2, 2.0, 0.05, gaps)
+        expected = reference(levels.astype(np.float64), guide, p1, p2, 2.0, 0.05, gaps)
+        assert np.allclose(got, expected, rtol=1e-6), count
+        even = aggregate(levels, guide, p1, p2, 2.0, 0.05, np.full(max(count - 1, 0), p1))
+        np.testing.assert_array_equal(even, aggregate(levels, guide, p1, p2, 2.0, 0.05))
+
+
+def test_gaps_of_the_wrong_length_are_refused():
+    cost = np.zeros((3, 4, 5), np.float32)
+    with pytest.raises(ValueError, match="gaps"):
+        aggregate(cost, np.zeros((3, 4), np.float32), 0.1, 0.8, gaps=np.zeros(5))
 
 
 def test_a_uint16_volume_is_read_as_it_is_with_the_penalties_scaled_alike():
