@@ -2,7 +2,9 @@
 
 1. Range: a quick search on a quarter-size image over the whole range the optics allow finds the
    disparities the scene occupies; the full search covers those plus a margin (fewer candidates, and no
-   false matches far outside the scene).
+   false matches far outside the scene). Where that range would take the volumes past their memory budget,
+   the candidates stay `step_px` apart over the quick map's bulk and grow coarser out to the range's ends
+   (`search_candidates`).
 2. Cost: the colour-line cost (`processing.cost`) of the feature planes at every candidate, plus the same cost
    computed at half size and brought back up (weak, fine texture is backed by coarser structure: upscaled or
    noisy content has little signal at the finest scale). Each pixel's cost curve is scaled by how much of its
@@ -20,6 +22,7 @@ All disparities are of the widest filter pair in pixels of the planes handed in,
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import cv2
@@ -59,6 +62,11 @@ class DenseParams:
     noise_steps: float = 0.0
     narrow_range: bool = True  # find the occupied range on a quarter-size image first
     range_margin_px: float = 2.0  # kept around the occupied range
+    # the search's two volumes (the uint16 cost and the float32 aggregation, 6 bytes per pixel and candidate) stay
+    # within this: issue 16's 3 GB peak less what the rest of a 20 MP run holds (under 1 GB). Past it the
+    # candidates are `step_px` apart only over the quick map's `core_percentiles` (`search_candidates`)
+    volume_budget_mb: float = 2048.0
+    core_percentiles: tuple[float, float] = (2.0, 98.0)
     sampling: str = "bilinear"  # the cost's sampler: "bilinear", "phase" or "bspline" (`processing.cost`)
     noise_model: bool = True  # measure the sensor noise and take its sampling bias out of the cost (`processing.cost`)
     # a pixel's cost counts by its window's signal-to-noise ratio s as s / (s + this) (`features.signal_weight`;
@@ -210,6 +218,10 @@ def _winner_kernel(
 ) -> None:
     h, w, count = aggregated.shape
     step = candidates[1] - candidates[0] if count > 1 else 1.0
+    even = True
+    for d in range(2, count):
+        if abs(candidates[d] - candidates[d - 1] - step) > 1e-9 * step:
+            even = False
     for y in nb.prange(h):
         for x in range(w):
             a = aggregated[y, x]
@@ -223,7 +235,12 @@ def _winner_kernel(
                 curvature = a[best - 1] - 2.0 * at + a[best + 1]
                 if curvature > 1e-9:
                     offset = min(max(0.5 * (a[best - 1] - a[best + 1]) / curvature, -0.5), 0.5)
-            disparity[y, x] = candidates[best] + offset * step
+            if even:
+                disparity[y, x] = candidates[best] + offset * step
+            elif offset > 0.0:  # uneven candidates (`search_candidates`): the spacing on the offset's side
+                disparity[y, x] = candidates[best] + offset * (candidates[best + 1] - candidates[best])
+            else:
+                disparity[y, x] = candidates[best] + offset * (candidates[best] - candidates[best - 1])
             # no infinity as "none yet": fastmath lets the compiler assume there is none (second == inf is false)
             far = False
             second = 0.0
@@ -277,9 +294,54 @@ def occupied_range(
     disparity = quick if quick is not None else quick_disparity(planes, aperture, range_px, params)
     if disparity is None:
         return range_px
-    low = percentile(disparity, 0.2) - params.range_margin_px - 4.0 * params.step_px
-    high = percentile(disparity, 99.8) + params.range_margin_px + 4.0 * params.step_px
+    return _around(disparity, (0.2, 99.8), range_px, params)
+
+
+def _around(quick: np.ndarray, percentiles: tuple[float, float], range_px: tuple[float, float], params: DenseParams):
+    """The span between two percentiles of the quick map, + margin, within `range_px`."""
+    margin = params.range_margin_px + 4.0 * params.step_px
+    low, high = percentile(quick, percentiles[0]) - margin, percentile(quick, percentiles[1]) + margin
     return (max(range_px[0], low), min(range_px[1], high))
+
+
+_VOLUME_BYTES = 6  # per pixel and candidate: the uint16 cost and the float32 aggregation
+
+
+def search_candidates(
+    search_px: tuple[float, float], pixels: int, params: DenseParams, quick: np.ndarray | None = None
+) -> np.ndarray:
+    """The candidates of the dense search over `search_px` for an image of `pixels`: `candidate_disparities`
+    while their volumes fit `params.volume_budget_mb`. Past it, and given the quick map, they are `step_px` apart
+    over the quick map's bulk (between its `core_percentiles`, + margin, widened by what the budget has left)
+    and 4, 8, 16 or 32 times farther apart out to the range's ends: the fewest times that fit.
+
+    A quick map strays where it has no evidence: in Venus-s1's dark, textureless corner about 2 % of it fell
+    anywhere from -170 to +159 px, where the scene spans -24..+28 px, and the even search took 660 candidates and
+    5.5 GB. Its pixels in the coarse tails can still take a disparity there; a scene truly that wide is searched
+    on a coarser step only where little of the quick map lies. A range too wide even for that is searched evenly,
+    as many steps apart as fit."""
+    step = params.step_px
+    even = candidate_disparities(search_px, step)
+    fit = max(int(params.volume_budget_mb * 2**20 / (_VOLUME_BYTES * max(pixels, 1))), 8)
+    if len(even) <= fit:
+        return even
+    if quick is not None:
+        low, high = search_px
+        core_low, core_high = _around(quick, params.core_percentiles, search_px, params)
+        for factor in (4, 8, 16, 32):
+            tail = factor * step
+            tails = math.ceil((core_low - low) / tail) + math.ceil((high - core_high) / tail)
+            spare = fit - tails - ((core_high - core_low) / step + 2)
+            if spare >= 0:
+                widen = 0.5 * max(spare - 4, 0) / (1.0 / step - 1.0 / tail)  # 4: the tails' rounding, as they shrink
+                core = candidate_disparities((max(low, core_low - widen), min(high, core_high + widen)), step)
+                below = core[0] - tail * np.arange(math.ceil(max(core[0] - low, 0.0) / tail), 0, -1)
+                above = core[-1] + tail * np.arange(1, math.ceil(max(high - core[-1], 0.0) / tail) + 1)
+                return np.concatenate([below, core, above])
+    wider = math.ceil(len(even) / fit)
+    while len(candidate_disparities(search_px, step * wider)) > fit:
+        wider += 1
+    return candidate_disparities(search_px, step * wider)
 
 
 def _step_sigma(guide: np.ndarray) -> float:
@@ -301,13 +363,21 @@ def estimate_dense(
     planes' `cost.cost_input` and `quick` their `quick_disparity` over `range_px` when the caller has made
     them already (they then are not made again)."""
     planes = np.ascontiguousarray(planes, dtype=np.float32)
-    search = occupied_range(planes, aperture, range_px, params, quick) if params.narrow_range else range_px
-    candidates = candidate_disparities(search, params.step_px)
+    search = range_px
+    if params.narrow_range:
+        if quick is None:
+            quick = quick_disparity(planes, aperture, range_px, params)
+        search = occupied_range(planes, aperture, range_px, params, quick)
+    candidates = search_candidates(search, planes.shape[0] * planes.shape[1], params, quick)
     volume = _cost_hwd(planes, aperture, candidates, params, inputs)
     scale = COST_LEVELS * params.step_px / 0.5  # penalties are given in cost units for 0.5 px steps
     guide = display_gamma(planes)
     if not params.colour_guide:
         guide = guide.mean(axis=2)
+    spacing = np.diff(candidates)
+    gaps = None
+    if spacing.size and np.ptp(spacing) > 1e-9 * params.step_px:  # uneven: a coarse tail's neighbours are a jump apart
+        gaps = np.where(spacing > 1.5 * params.step_px, params.p2 * scale, params.p1 * scale)
     aggregated = aggregate(
         volume,
         guide,
@@ -315,6 +385,7 @@ def estimate_dense(
         params.p2 * scale,
         params.alpha,
         params.noise_steps * _step_sigma(guide) if params.noise_steps > 0 else 0.0,
+        gaps,
     )
     del volume
     disparity, confidence = _winner(aggregated, candidates, _PATHS * params.p2 * scale)

@@ -8,7 +8,13 @@ import pytest
 from mca_scenes import render_layers, texture, two_boxes_scene
 
 from mca.devices.profiles import load_profile
-from mca.processing.dense import DenseParams, candidate_disparities, estimate_dense, occupied_range
+from mca.processing.dense import (
+    DenseParams,
+    candidate_disparities,
+    estimate_dense,
+    occupied_range,
+    search_candidates,
+)
 
 APERTURE = load_profile("paper-70d").aperture
 
@@ -36,6 +42,64 @@ def test_occupied_range_contains_every_surface_and_little_else():
     low, high = occupied_range(image, APERTURE, (-30.0, 30.0), DenseParams())
     assert low <= min(truth.values()) and high >= max(truth.values())
     assert high - low < 25.0
+
+
+def _budget_mb(pixels: int, candidates: int) -> float:
+    """The volume budget that fits this many candidates on an image of `pixels` (6 bytes each)."""
+    return candidates * pixels * 6 / 2**20
+
+
+def test_the_candidates_are_even_within_the_volume_budget():
+    pixels = 300 * 400
+    even = candidate_disparities((-20.0, 30.0), 0.5)  # 101
+    quick = np.zeros(1000, np.float32)
+    params = DenseParams(volume_budget_mb=_budget_mb(pixels, len(even)))
+    np.testing.assert_array_equal(search_candidates((-20.0, 30.0), pixels, params, quick), even)
+
+
+def test_past_the_budget_the_candidates_are_fine_over_the_quick_maps_bulk_and_coarse_beyond():
+    """A quick map whose bulk spans -10..+12 px, with 1 % strays from -150 to +140 px (a dark corner matching
+    anywhere): the search covers all of the range within the budget, 0.5 px apart over the bulk."""
+    rng = np.random.default_rng(3)
+    bulk = rng.uniform(-10.0, 12.0, 9900)
+    quick = np.concatenate([bulk, rng.uniform(-150.0, 140.0, 100)]).astype(np.float32)
+    pixels = 1368 * 912
+    params = DenseParams(volume_budget_mb=_budget_mb(pixels, 120))
+    c = search_candidates((-152.0, 142.0), pixels, params, quick)
+    assert len(c) <= 120 < len(candidate_disparities((-152.0, 142.0), 0.5))
+    assert c[0] <= -152.0 and c[-1] >= 142.0 and np.all(np.diff(c) > 0)
+    np.testing.assert_allclose(c / 0.5, np.round(c / 0.5))  # every candidate on the even search's grid
+    fine = c[1:][np.diff(c) == 0.5]
+    assert fine.min() <= -10.0 - 4.0 and fine.max() >= 12.0 + 4.0  # the bulk and its margin: 0.5 px apart
+    assert np.diff(c).max() in (2.0, 4.0, 8.0, 16.0)  # the tails: 4, 8, 16 or 32 steps
+
+
+def test_a_range_too_wide_for_any_tail_is_searched_evenly_on_a_wider_step():
+    quick = np.linspace(-100.0, 100.0, 5000, dtype=np.float32)  # a bulk wider than the budget
+    pixels = 1000 * 1000
+    params = DenseParams(volume_budget_mb=_budget_mb(pixels, 150))
+    c = search_candidates((-110.0, 110.0), pixels, params, quick)
+    assert len(c) <= 150 and c[0] <= -110.0 and c[-1] >= 110.0
+    assert np.allclose(np.diff(c), np.diff(c)[0]) and np.diff(c)[0] > 0.5
+
+
+def test_a_small_object_in_a_coarse_tail_is_still_found():
+    """A textured wall at 0 px and a patch at +8.2 px on 1.5 % of the image (under the bulk's 2 %), searched over -12..+12 px with a
+    budget that leaves the candidates 0.5 px apart only around the wall: the patch comes out within a pixel,
+    the wall as precise as on an even search."""
+    shape = (320, 400)
+    wall = (texture(shape, 1), np.ones(shape, np.float32), 0.0)
+    patch = np.zeros(shape, np.float32)
+    patch[140:180, 240:288] = 1.0
+    image = render_layers([wall, (texture(shape, 2, (0.3, 0.5, 0.4)), patch, 8.2)], shape, APERTURE)
+    even = len(candidate_disparities((-12.0, 12.0), 0.5))
+    params = DenseParams(narrow_range=True, volume_budget_mb=_budget_mb(shape[0] * shape[1], even // 2))
+    result = estimate_dense(image, APERTURE, (-12.0, 12.0), params)
+    c = result.candidates_px
+    assert len(c) <= even // 2 and np.diff(c).max() > 0.5  # uneven: coarse past the wall's bulk
+    assert set(np.arange(-2.0, 2.5, 0.5)) <= set(c)  # fine around the wall
+    assert abs(float(np.median(result.disparity_px[148:172, 248:280])) - 8.2) < 1.0
+    assert abs(float(np.median(result.disparity_px[40:120, 40:200]))) < 0.1
 
 
 def test_depth_steps_between_objects_are_kept():

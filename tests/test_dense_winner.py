@@ -38,6 +38,19 @@ def test_a_winner_at_the_end_of_the_range_and_a_flat_curve_take_the_candidate_it
     assert 0.0 < confidence[0, 0] < 1e-5  # far candidates cost more, relative to a huge jump cost
 
 
+@pytest.mark.parametrize("vertex", [2.3, 3.6, 4.5])  # between the coarse tail's candidates, and on either side
+def test_on_uneven_candidates_the_offset_is_taken_with_the_spacing_on_its_side(vertex: float) -> None:
+    """`search_candidates` spaces the tails of a wide range coarser than its core: a cost quadratic in the
+    candidate's index has its vertex `vertex` indices in, and the winner lies that far along the candidates,
+    linearly between the two around it."""
+    candidates = np.array([-6.0, -4.0, -2.0, -1.5, -1.0, -0.5, 0.0, 2.0, 4.0])
+    index = np.arange(len(candidates), dtype=np.float64)
+    disparity, _ = _winner(_volume([(index - vertex) ** 2]), candidates, 10.0)
+    below = int(np.floor(vertex))
+    expected = candidates[below] + (vertex - below) * (candidates[below + 1] - candidates[below])
+    assert disparity[0, 0] == pytest.approx(expected, abs=1e-5)
+
+
 def test_the_confidence_is_clipped_and_zero_without_a_far_candidate() -> None:
     candidates = candidate_disparities((-1.0, 1.0), 0.5)  # five candidates
     curve = (candidates - 0.0) ** 2  # best in the middle: no candidate more than two steps away
