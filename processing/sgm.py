@@ -5,11 +5,13 @@ Along each path r the aggregated cost is
 and the paths are summed. P1 charges a one-step change of disparity (slanted and curved surfaces), P2 any
 larger jump; P2 shrinks where the guide image changes (an object boundary), P2(p) = max(1.5 P1,
 P2 / (1 + alpha max(max_c |I_c(p) - I_c(p-r)| - floor, 0))) over the guide's channels, floor the steps noise
-makes. On unevenly spaced candidates a change between neighbours more than one step apart is a jump (`gaps`). Compiled with numba: the volume is (H, W, D) with D contiguous, each
-path is a sweep over columns (horizontal paths, parallel over rows) or over rows: the three downward paths
-(vertical and diagonal) in one sweep and the three upward ones in another, each row of a sweep shared out
-among the threads by columns. Every path adds into one output volume: no second volume of the cost's size is
-made (at 20 MP one is a quarter of a gigabyte, whose first touch costs more than the sweep's waits).
+makes. On unevenly spaced candidates a change between neighbours more than one step apart is a jump (`gaps`).
+
+Compiled with numba: the volume is (H, W, D) with D contiguous, each path is a sweep over columns (horizontal
+paths, parallel over rows) or over rows: the three downward paths (vertical and diagonal) in one sweep and the
+three upward ones in another, each row of a sweep shared out among the threads by columns. Every path adds into
+one output volume: no second volume of the cost's size is made (at 20 MP one is a quarter of a gigabyte, whose
+first touch costs more than the sweep's waits).
 """
 
 from __future__ import annotations
